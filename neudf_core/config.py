@@ -1,0 +1,140 @@
+"""Training configuration: pydantic models, one block per part, and presets stored as JSON data.
+
+A preset is a JSON file in ``neudf_core/presets/`` holding any subset of the blocks below; what it leaves
+out takes the defaults, which are the paper's. Overrides (from the CLI or a job) merge on top.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from neudf_core.renderer import SectionMode, VarsigmaKind, WeightMode
+
+PRESET_DIR = Path(__file__).parent / "presets"
+
+
+class _Block(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class FieldConfig(_Block):
+    """The UDF network Psi (paper: 8x256, PE 6, skip at 4, weight norm, Softplus beta=100)."""
+
+    d_hidden: int = 256
+    n_layers: int = 8
+    skip_in: tuple[int, ...] = (4,)
+    n_freqs: int = 6
+    d_feature: int = 256
+    init_radius: float | None = Field(
+        None, description="geometric init: None = the UDF of a point (unsigned) or a sphere of radius 0.5 (signed)")
+    use_weight_norm: bool = True
+
+
+class ColorConfig(_Block):
+    """The colour network (paper: 4x256, view-direction PE 4)."""
+
+    d_hidden: int = 256
+    n_layers: int = 4
+    n_freqs_view: int = 4
+
+
+class BackgroundConfig(_Block):
+    """NeRF++ outside the unit sphere; disabled when masks are used or the background is a known colour."""
+
+    enabled: bool = True
+    d_hidden: int = 256
+    n_layers: int = 8
+    n_freqs: int = 10
+    n_samples: int = 32
+
+
+class RendererConfig(_Block):
+    """The rendering weight. ``weight`` picks NeUDF or one of the paper's baselines."""
+
+    weight: WeightMode = "neudf"
+    varsigma: VarsigmaKind = "rational"
+    sharpness_init: float = Field(0.05, description="r for NeUDF (paper: 0.05), s for the NeuS baselines")
+    section: SectionMode = "midpoint_gradient"
+    cos_anneal_iters: int = 10_000
+    normal_reg_k: int = Field(5, description="K previous samples for the regularised normal; 0 = raw gradient")
+
+
+class SamplerConfig(_Block):
+    """64 coarse + 2 rounds x 32 importance samples, s doubling per round."""
+
+    n_coarse: int = 64
+    n_importance: int = 64
+    n_rounds: int = 2
+    s0: float = Field(64.0, description="zeta_s sharpness of the first round (doubles each round)")
+    importance_start_iter: int = 0
+
+
+class LossConfig(_Block):
+    eikonal_weight: float = 0.1
+    mask_weight: float = 0.0
+    normal_smooth_weight: float = Field(0.0, description="authors' code: sign-agnostic consecutive-normal term")
+
+
+class OptimConfig(_Block):
+    lr: float = 2e-4
+    lr_end_factor: float = 0.05
+    warmup_iters: int = 5_000
+    iters: int = 400_000
+    rays: int = 512
+    images_per_batch: int = 8
+
+
+class DataConfig(_Block):
+    max_size: int = Field(0, description="downscale images to this longest side for training (0 = keep)")
+    use_masks: bool = False
+    white_background: bool = False
+
+
+class LogConfig(_Block):
+    log_every: int = 100
+    val_every: int = 5_000
+    val_size: int = 128
+    ckpt_every: int = 10_000
+
+
+class TrainConfig(_Block):
+    preset: str = "paper"
+    seed: int = 0
+    field: FieldConfig = FieldConfig()
+    color: ColorConfig = ColorConfig()
+    background: BackgroundConfig = BackgroundConfig()
+    renderer: RendererConfig = RendererConfig()
+    sampler: SamplerConfig = SamplerConfig()
+    loss: LossConfig = LossConfig()
+    optim: OptimConfig = OptimConfig()
+    data: DataConfig = DataConfig()
+    log: LogConfig = LogConfig()
+
+
+def available_presets() -> list[str]:
+    return sorted(p.stem for p in PRESET_DIR.glob("*.json"))
+
+
+def deep_merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in extra.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def load_config(preset: str = "paper", overrides: dict[str, Any] | None = None) -> TrainConfig:
+    """The preset's values on top of the defaults, then ``overrides`` on top. Unknown keys are errors."""
+    path = PRESET_DIR / f"{preset}.json"
+    if not path.is_file():
+        raise ValueError(f"unknown preset {preset!r}; available: {', '.join(available_presets())}")
+    preset_data = {k: v for k, v in json.loads(path.read_text()).items() if not k.startswith("_")}
+    data = deep_merge(preset_data, overrides or {})
+    data["preset"] = preset
+    return TrainConfig.model_validate(data)

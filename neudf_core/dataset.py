@@ -1,0 +1,153 @@
+"""The NeuS / NeUDF dataset layout: image/*.png, optional mask/*.png, cameras_sphere.npz.
+
+``cameras_sphere.npz`` holds, per image i, ``world_mat_i`` (K [R | t], world to pixels) and
+``scale_mat_i`` (unit sphere to world). The camera in unit-sphere coordinates is
+P_i = world_mat_i @ scale_mat_i; ``scale_mat_i`` may differ per view and may hold a rotation, so it is
+never assumed diagonal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from PIL import Image
+from torch import Tensor
+
+
+class DatasetError(ValueError):
+    """A dataset folder that cannot be used, with the reason in words."""
+
+
+@dataclass
+class Dataset:
+    images: Tensor  # (N, H, W, 3) float 0..1
+    masks: Tensor | None  # (N, H, W) float 0..1
+    intrinsics: Tensor  # (N, 3, 3) in pixels of ``images``
+    c2w: Tensor  # (N, 4, 4), OpenCV camera to unit-sphere world
+    names: list[str]
+
+    @property
+    def n_images(self) -> int:
+        return self.images.shape[0]
+
+    @property
+    def height(self) -> int:
+        return self.images.shape[1]
+
+    @property
+    def width(self) -> int:
+        return self.images.shape[2]
+
+    def to(self, device: str | torch.device) -> "Dataset":
+        masks = self.masks.to(device) if self.masks is not None else None
+        return Dataset(self.images.to(device), masks, self.intrinsics.to(device), self.c2w.to(device), self.names)
+
+    def rays(self, image_idx: Tensor, pixel_y: Tensor, pixel_x: Tensor) -> tuple[Tensor, Tensor]:
+        """World-space origins and unit directions through pixel centres."""
+        pix = torch.stack([pixel_x + 0.5, pixel_y + 0.5, torch.ones_like(pixel_x)], -1).float()
+        dirs_cam = torch.linalg.solve(self.intrinsics[image_idx], pix[..., None])[..., 0]
+        c2w = self.c2w[image_idx]
+        dirs = (c2w[:, :3, :3] @ dirs_cam[..., None])[..., 0]
+        return c2w[:, :3, 3], dirs / dirs.norm(dim=-1, keepdim=True)
+
+    def sample_rays(self, n_rays: int, images_per_batch: int, generator: torch.Generator | None = None) -> dict:
+        """n random rays from ``images_per_batch`` random images (the paper: 512 rays from 8 images)."""
+        device = self.images.device
+        k = min(images_per_batch, self.n_images) if images_per_batch > 0 else self.n_images
+        chosen = torch.randperm(self.n_images, generator=generator)[:k].to(device)
+        image_idx = chosen[torch.randint(0, k, (n_rays,), generator=generator).to(device)]
+        y = torch.randint(0, self.height, (n_rays,), generator=generator).to(device)
+        x = torch.randint(0, self.width, (n_rays,), generator=generator).to(device)
+        rays_o, rays_d = self.rays(image_idx, y, x)
+        batch = {"rays_o": rays_o, "rays_d": rays_d, "color": self.images[image_idx, y, x]}
+        if self.masks is not None:
+            batch["mask"] = self.masks[image_idx, y, x]
+        return batch
+
+    def image_rays(self, index: int, size: int) -> tuple[Tensor, Tensor, tuple[int, int]]:
+        """Rays of a whole image rendered at ``size`` pixels on its longest side (for validation)."""
+        scale = size / max(self.height, self.width)
+        h, w = max(1, round(self.height * scale)), max(1, round(self.width * scale))
+        ys = (torch.arange(h, device=self.images.device) + 0.5) / scale - 0.5
+        xs = (torch.arange(w, device=self.images.device) + 0.5) / scale - 0.5
+        gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+        idx = torch.full((h * w,), index, device=self.images.device)
+        rays_o, rays_d = self.rays(idx, gy.reshape(-1), gx.reshape(-1))
+        return rays_o, rays_d, (h, w)
+
+
+def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Split a 3x4 projection into intrinsics K (3x3) and an OpenCV camera-to-world matrix (4x4)."""
+    K, R, t = cv2.decomposeProjectionMatrix(P[:3, :4])[:3]
+    K = K / K[2, 2]
+    c2w = np.eye(4)
+    c2w[:3, :3] = R.T
+    c2w[:3, 3] = (t[:3] / t[3])[:, 0]
+    return K, c2w
+
+
+def _read_image(path: Path, size: tuple[int, int] | None, grey: bool) -> np.ndarray:
+    try:
+        img = Image.open(path)
+        img = img.convert("L" if grey else "RGB")
+    except Exception as exc:  # PIL raises many types for a broken file
+        raise DatasetError(f"cannot read image {path}: {exc}") from exc
+    if size is not None and img.size != size:
+        img = img.resize(size, Image.Resampling.BILINEAR if grey else Image.Resampling.LANCZOS)
+    return np.asarray(img, dtype=np.float32) / 255.0
+
+
+def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False) -> Dataset:
+    """Read a NeuS-layout folder; ``max_size`` > 0 downsizes images (and intrinsics) for training."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(f"dataset folder {root} does not exist")
+    image_paths = sorted((root / "image").glob("*.png")) + sorted((root / "image").glob("*.jpg"))
+    if not image_paths:
+        raise DatasetError(f"no images in {root / 'image'} (expected image/*.png)")
+    cam_file = root / "cameras_sphere.npz"
+    if not cam_file.is_file():
+        raise DatasetError(f"{cam_file} is missing (NeuS layout: world_mat_i and scale_mat_i per image)")
+    cams = np.load(cam_file)
+    missing = [i for i in range(len(image_paths)) if f"world_mat_{i}" not in cams or f"scale_mat_{i}" not in cams]
+    if missing:
+        raise DatasetError(
+            f"{cam_file.name} has no world_mat/scale_mat for image index {missing[0]} "
+            f"({len(missing)} of {len(image_paths)} images lack cameras)"
+        )
+    mask_paths = None
+    if use_masks:
+        mask_paths = sorted((root / "mask").glob("*.png"))
+        if len(mask_paths) != len(image_paths):
+            raise DatasetError(f"{len(mask_paths)} masks for {len(image_paths)} images in {root / 'mask'}")
+
+    first = Image.open(image_paths[0])
+    width, height = first.size
+    scale = min(1.0, max_size / max(width, height)) if max_size > 0 else 1.0
+    size = (max(1, round(width * scale)), max(1, round(height * scale)))
+    images, masks, Ks, c2ws = [], [], [], []
+    for i, path in enumerate(image_paths):
+        with Image.open(path) as probe:
+            if probe.size != (width, height):
+                raise DatasetError(f"{path.name} is {probe.size[0]}x{probe.size[1]}, others are {width}x{height}")
+        images.append(_read_image(path, size, grey=False))
+        if mask_paths is not None:
+            masks.append(_read_image(mask_paths[i], size, grey=True))
+        P = cams[f"world_mat_{i}"] @ cams[f"scale_mat_{i}"]
+        K, c2w = decompose_projection(P)
+        K[0, :] *= size[0] / width
+        K[1, :] *= size[1] / height
+        Ks.append(K)
+        c2ws.append(c2w)
+    as_t = lambda a: torch.from_numpy(np.stack(a)).float()  # noqa: E731
+    return Dataset(
+        images=as_t(images),
+        masks=as_t(masks) if mask_paths is not None else None,
+        intrinsics=as_t(Ks),
+        c2w=as_t(c2ws),
+        names=[p.name for p in image_paths],
+    )

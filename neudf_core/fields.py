@@ -1,0 +1,182 @@
+"""The networks of NeUDF: the unsigned distance field Psi, the colour field, the NeRF++ background.
+
+Shapes follow the paper's supplement (Sec. "Network Architecture"): Psi is an 8x256 MLP on positionally
+encoded points with a skip into layer 4, weight normalisation and Softplus(beta=100) on the hidden layers
+*and* on the output, so Psi >= 0 everywhere. The colour network sees the point, the encoded view
+direction, the (regularised) normal and Psi's feature vector.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import torch
+from torch import Tensor, nn
+from torch.nn.utils.parametrizations import weight_norm as _weight_norm
+
+
+class PositionalEncoding(nn.Module):
+    """NeRF/NeuS encoding: [x, sin(2^k x), cos(2^k x) for k < n_freqs]."""
+
+    def __init__(self, n_freqs: int, d_in: int = 3):
+        super().__init__()
+        self.register_buffer("freqs", 2.0 ** torch.arange(n_freqs, dtype=torch.float32), persistent=False)
+        self.d_out = d_in * (1 + 2 * n_freqs)
+
+    def forward(self, x: Tensor) -> Tensor:
+        if len(self.freqs) == 0:
+            return x
+        scaled = x[..., None, :] * self.freqs[:, None]  # (..., F, d)
+        enc = torch.cat([torch.sin(scaled), torch.cos(scaled)], dim=-1).flatten(-2)
+        return torch.cat([x, enc], dim=-1)
+
+
+def _linear(d_in: int, d_out: int, use_weight_norm: bool) -> nn.Linear:
+    layer = nn.Linear(d_in, d_out)
+    return _weight_norm(layer) if use_weight_norm else layer
+
+
+class UDFNetwork(nn.Module):
+    """Psi: R^3 -> R_{>=0} (or R for the NeuS-SDF baseline) plus a feature vector.
+
+    Initialisation: IDR's geometric init makes the pre-activation output |x| - radius. With radius 0 the
+    unsigned field starts as the UDF of a point (the origin), a valid distance field with unit gradient
+    everywhere. For ``signed=True`` it is the SDF of a sphere of that radius, as NeuS starts from.
+    """
+
+    def __init__(
+        self,
+        d_hidden: int = 256,
+        n_layers: int = 8,
+        skip_in: tuple[int, ...] = (4,),
+        n_freqs: int = 6,
+        d_feature: int = 256,
+        init_radius: float = 0.5,
+        geometric_init: bool = True,
+        use_weight_norm: bool = True,
+        softplus_beta: float = 100.0,
+        signed: bool = False,
+    ):
+        super().__init__()
+        self.encoding = PositionalEncoding(n_freqs)
+        self.signed = signed
+        self.skip_in = set(skip_in)
+        self.d_feature = d_feature
+        dims = [self.encoding.d_out] + [d_hidden] * n_layers + [1 + d_feature]
+        d_in = dims[0]
+        layers = []
+        for i in range(len(dims) - 1):
+            out_dim = dims[i + 1] - d_in if (i + 1) in self.skip_in else dims[i + 1]
+            layer = nn.Linear(dims[i], out_dim)
+            if geometric_init:
+                self._geometric_init(layer, i, len(dims) - 2, d_in, out_dim, init_radius)
+            layers.append(_weight_norm(layer) if use_weight_norm else layer)
+        self.layers = nn.ModuleList(layers)
+        self.activation = nn.Softplus(beta=softplus_beta)
+
+    def _geometric_init(self, layer: nn.Linear, i: int, last: int, d_in: int, out_dim: int, radius: float) -> None:
+        """IDR / SAL geometric initialisation: the network starts as the SDF of a sphere."""
+        with torch.no_grad():
+            if i == last:
+                nn.init.normal_(layer.weight, mean=math.sqrt(math.pi) / math.sqrt(layer.in_features), std=1e-4)
+                nn.init.constant_(layer.bias, -radius)
+            elif i == 0:
+                # Only the raw coordinates feed the first layer at init; the encoding starts silent.
+                nn.init.constant_(layer.bias, 0.0)
+                nn.init.constant_(layer.weight[:, 3:], 0.0)
+                nn.init.normal_(layer.weight[:, :3], 0.0, math.sqrt(2) / math.sqrt(out_dim))
+            elif i in self.skip_in:
+                nn.init.constant_(layer.bias, 0.0)
+                nn.init.normal_(layer.weight, 0.0, math.sqrt(2) / math.sqrt(out_dim))
+                if d_in > 3:
+                    nn.init.constant_(layer.weight[:, -(d_in - 3):], 0.0)
+            else:
+                nn.init.constant_(layer.bias, 0.0)
+                nn.init.normal_(layer.weight, 0.0, math.sqrt(2) / math.sqrt(out_dim))
+
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """Returns (psi (N,), feature (N, d_feature))."""
+        inputs = self.encoding(x)
+        h = inputs
+        for i, layer in enumerate(self.layers):
+            if i in self.skip_in:
+                h = torch.cat([h, inputs], dim=-1) / math.sqrt(2)
+            h = layer(h)
+            if i < len(self.layers) - 1:
+                h = self.activation(h)
+        value = h[:, 0]
+        if not self.signed:
+            value = self.activation(value)  # Psi >= 0: the paper's Softplus on the output
+        return value, h[:, 1:]
+
+
+class ColorNetwork(nn.Module):
+    """c(x, v, n, feature) -> RGB in (0, 1)."""
+
+    def __init__(self, d_feature: int = 256, d_hidden: int = 256, n_layers: int = 4, n_freqs_view: int = 4,
+                 use_weight_norm: bool = True):
+        super().__init__()
+        self.view_encoding = PositionalEncoding(n_freqs_view)
+        dims = [3 + self.view_encoding.d_out + 3 + d_feature] + [d_hidden] * n_layers + [3]
+        self.layers = nn.ModuleList(_linear(a, b, use_weight_norm) for a, b in zip(dims[:-1], dims[1:]))
+
+    def forward(self, x: Tensor, view_dirs: Tensor, normals: Tensor, features: Tensor) -> Tensor:
+        h = torch.cat([x, self.view_encoding(view_dirs), normals, features], dim=-1)
+        for i, layer in enumerate(self.layers):
+            h = layer(h)
+            if i < len(self.layers) - 1:
+                h = torch.relu(h)
+        return torch.sigmoid(h)
+
+
+class BackgroundNeRF(nn.Module):
+    """NeRF++'s outside model: density and colour of points beyond the unit sphere, in inverted-sphere
+    coordinates (x/|x|, 1/|x|) so that infinity is a finite place."""
+
+    def __init__(self, d_hidden: int = 256, n_layers: int = 8, n_freqs: int = 10, n_freqs_view: int = 4,
+                 skip_in: tuple[int, ...] = (4,)):
+        super().__init__()
+        self.encoding = PositionalEncoding(n_freqs, d_in=4)
+        self.view_encoding = PositionalEncoding(n_freqs_view)
+        self.skip_in = set(skip_in)
+        d_in = self.encoding.d_out
+        layers = []
+        for i in range(n_layers):
+            d = d_in if i == 0 else d_hidden + (d_in if i in self.skip_in else 0)
+            layers.append(nn.Linear(d, d_hidden))
+        self.layers = nn.ModuleList(layers)
+        self.density = nn.Linear(d_hidden, 1)
+        self.feature = nn.Linear(d_hidden, d_hidden)
+        self.rgb = nn.Sequential(nn.Linear(d_hidden + self.view_encoding.d_out, d_hidden // 2), nn.ReLU(),
+                                 nn.Linear(d_hidden // 2, 3))
+
+    def forward(self, x: Tensor, view_dirs: Tensor) -> tuple[Tensor, Tensor]:
+        """x: points outside the unit sphere (N, 3). Returns (sigma (N,), rgb (N, 3))."""
+        dist = x.norm(dim=-1, keepdim=True).clamp_min(1.0)
+        inputs = self.encoding(torch.cat([x / dist, 1.0 / dist], dim=-1))
+        h = inputs
+        for i, layer in enumerate(self.layers):
+            if i in self.skip_in:
+                h = torch.cat([inputs, h], dim=-1)
+            h = torch.relu(layer(h))
+        sigma = torch.relu(self.density(h)[:, 0])
+        rgb = torch.sigmoid(self.rgb(torch.cat([self.feature(h), self.view_encoding(view_dirs)], dim=-1)))
+        return sigma, rgb
+
+
+class Sharpness(nn.Module):
+    """One learnable scalar: r for the NeUDF weight, s for the NeuS baselines.
+
+    Parameterised as exp(10 v), as NeuS does, so Adam's roughly constant step in v grows it geometrically.
+    """
+
+    def __init__(self, init_value: float):
+        super().__init__()
+        self.v = nn.Parameter(torch.tensor(math.log(init_value) / 10.0))
+
+    def forward(self) -> Tensor:
+        return torch.exp(10.0 * self.v)
+
+
+Mode = Literal["neudf", "neus_abs", "neus_sdf"]

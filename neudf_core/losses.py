@@ -1,0 +1,36 @@
+"""Loss terms (paper Sec. 3.4: L = L_c + alpha L_e + beta L_m) and the authors' optional normal term."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def color_l1(pred: Tensor, target: Tensor) -> Tensor:
+    """L_c: mean absolute error of rendered against observed colours."""
+    return (pred - target).abs().mean()
+
+
+def eikonal(gradients: Tensor, valid: Tensor) -> Tensor:
+    """L_e: (|grad Psi| - 1)^2 averaged over valid samples (inside a relaxed sphere)."""
+    err = (gradients.norm(dim=-1) - 1.0).pow(2)
+    return (err * valid).sum() / valid.sum().clamp_min(1.0)
+
+
+def mask_bce(weight_sum: Tensor, mask: Tensor) -> Tensor:
+    """L_m: binary cross-entropy between accumulated opacity and the object mask."""
+    return F.binary_cross_entropy(weight_sum.clamp(1e-3, 1.0 - 1e-3), mask)
+
+
+def normal_smoothness(gradients: Tensor, valid: Tensor) -> Tensor:
+    """The released code's extra term: consecutive normals on a ray agree up to sign."""
+    n = F.normalize(gradients, dim=-1)
+    diff = torch.minimum((n[:, 1:] - n[:, :-1]).abs().sum(-1), (n[:, 1:] + n[:, :-1]).abs().sum(-1))
+    v = valid[:, 1:] * valid[:, :-1]
+    return (diff * v).sum() / v.sum().clamp_min(1.0)
+
+
+def psnr(pred: Tensor, target: Tensor) -> float:
+    mse = (pred.detach() - target).pow(2).mean().clamp_min(1e-10)
+    return float(-10.0 * torch.log10(mse))

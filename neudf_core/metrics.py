@@ -1,0 +1,164 @@
+"""Mesh quality against a ground truth, in the paper's convention (see ../shared/CONTRACT.md, `neudf eval`).
+
+Both meshes are moved by the transform that puts GT in the unit sphere (centre = midpoint of GT's
+axis-aligned bounding box, scale = 1 / the largest distance of a GT vertex from that centre). Each mesh is
+sampled densely (area-weighted, ``n_samples`` points) and every sample's distance to the *other mesh's
+surface* is exact point-to-triangle distance (open3d's RaycastingScene, a BVH), not the distance to the
+other mesh's samples, which would add the sampling spacing to every figure.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+DEFAULT_SAMPLES = 100_000
+DEFAULT_FSCORE_THRESHOLD = 0.01  # in GT's unit sphere (radius 1)
+
+
+def _merged_faces(mesh: trimesh.Trimesh) -> np.ndarray:
+    """Faces re-indexed so that vertices at the same position are one (OBJ/GLB split them at UV seams)."""
+    vertices = np.asarray(mesh.vertices, np.float64)
+    if len(vertices) == 0:
+        return np.zeros((0, 3), np.int64)
+    tol = 1e-8 * max(float(np.ptp(vertices, axis=0).max()), 1e-12)
+    _, inverse = np.unique(np.round(vertices / tol).astype(np.int64), axis=0, return_inverse=True)
+    faces = inverse.reshape(-1)[np.asarray(mesh.faces, np.int64)]
+    ok = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    return faces[ok]
+
+
+def boundary_loops(mesh: trimesh.Trimesh) -> int:
+    """Closed loops of boundary edges (edges used by exactly one face); 0 for a watertight mesh.
+
+    Counted as the cycle rank of the boundary-edge graph (edges - vertices + pieces), so two loops that
+    touch at one vertex still count as two. Vertices are merged by position first.
+    """
+    faces = _merged_faces(mesh)
+    if len(faces) == 0:
+        return 0
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    boundary = unique[counts == 1]
+    if len(boundary) == 0:
+        return 0
+    vertices, local = np.unique(boundary, return_inverse=True)
+    local = local.reshape(-1, 2)
+    n = len(vertices)
+    graph = coo_matrix((np.ones(len(local)), (local[:, 0], local[:, 1])), shape=(n, n))
+    pieces, _ = connected_components(graph, directed=False)
+    return int(len(boundary) - n + pieces)
+
+
+def unit_sphere_normalisation(gt: trimesh.Trimesh) -> tuple[np.ndarray, float]:
+    """(centre, scale) with x -> (x - centre) * scale putting GT in the unit sphere (the contract's rule)."""
+    vertices = np.asarray(gt.vertices, np.float64)
+    centre = (vertices.min(0) + vertices.max(0)) / 2
+    radius = float(np.linalg.norm(vertices - centre, axis=1).max())
+    if not radius > 0:
+        raise ValueError("the ground-truth mesh has no extent (all vertices coincide)")
+    return centre, 1.0 / radius
+
+
+def _check(mesh: trimesh.Trimesh, name: str) -> None:
+    if len(mesh.faces) == 0 or not float(mesh.area) > 0:
+        raise ValueError(f"the {name} mesh has no triangles with area")
+
+
+def _sample(mesh: trimesh.Trimesh, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    points, face_index = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    return np.asarray(points), np.asarray(mesh.face_normals)[face_index]
+
+
+def _closest(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact distance from each point to ``mesh``'s surface, and the normal of the nearest triangle."""
+    import open3d as o3d  # heavy import, only needed here
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)),
+    )
+    query = o3d.core.Tensor(points.astype(np.float32))
+    result = scene.compute_closest_points(query)
+    distance = np.linalg.norm(result["points"].numpy().astype(np.float64) - points, axis=1)
+    return distance, result["primitive_normals"].numpy().astype(np.float64)
+
+
+def evaluate(
+    pred: trimesh.Trimesh,
+    gt: trimesh.Trimesh,
+    *,
+    n_samples: int = DEFAULT_SAMPLES,
+    fscore_threshold: float = DEFAULT_FSCORE_THRESHOLD,
+    seed: int = 0,
+) -> dict:
+    """Chamfer, F-score, normal consistency and boundary loops of ``pred`` against ``gt``.
+
+    Keys (CONTRACT.md): ``chamfer`` (mean of the two directed mean distances, GT unit sphere),
+    ``fscore`` (at ``fscore_threshold``, same units), ``normal_consistency`` (mean |cos| between a
+    sample's normal and the nearest triangle's on the other mesh, both ways; sign-agnostic since an open
+    surface has no inside), ``boundary_loops_pred``, ``boundary_loops_gt``; plus the directed terms,
+    precision, recall, the threshold, the sample count and the scale applied.
+    """
+    _check(pred, "predicted")
+    _check(gt, "ground-truth")
+    centre, scale = unit_sphere_normalisation(gt)
+    pred_n, gt_n = pred.copy(), gt.copy()
+    for mesh in (pred_n, gt_n):
+        mesh.apply_translation(-centre)
+        mesh.apply_scale(scale)
+    pred_pts, pred_normals = _sample(pred_n, n_samples, seed)
+    gt_pts, gt_normals = _sample(gt_n, n_samples, seed + 1)
+    d_pred, n_at_gt = _closest(gt_n, pred_pts)  # accuracy: how far predicted surface is from GT
+    d_gt, n_at_pred = _closest(pred_n, gt_pts)  # completeness: how much of GT the prediction covers
+    precision = float(np.mean(d_pred < fscore_threshold))
+    recall = float(np.mean(d_gt < fscore_threshold))
+    fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    cos_pred = np.abs(np.sum(pred_normals * n_at_gt, axis=1))
+    cos_gt = np.abs(np.sum(gt_normals * n_at_pred, axis=1))
+    return {
+        "chamfer": float((d_pred.mean() + d_gt.mean()) / 2),
+        "fscore": float(fscore),
+        "normal_consistency": float((cos_pred.mean() + cos_gt.mean()) / 2),
+        "boundary_loops_pred": boundary_loops(pred),
+        "boundary_loops_gt": boundary_loops(gt),
+        "chamfer_pred_to_gt": float(d_pred.mean()),
+        "chamfer_gt_to_pred": float(d_gt.mean()),
+        "precision": precision,
+        "recall": recall,
+        "fscore_threshold": float(fscore_threshold),
+        "n_samples": int(n_samples),
+        "scale": float(scale),
+    }
+
+
+def load_mesh(path: str | Path) -> trimesh.Trimesh:
+    """A triangle mesh from any format trimesh reads (scenes are flattened); clear errors otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many kinds for bad files; the caller needs one message
+        raise ValueError(f"cannot read mesh {path}: {exc}") from exc
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError(f"{path} holds no triangles")
+    return mesh
+
+
+def evaluate_files(
+    pred_path: str | Path,
+    gt_path: str | Path,
+    *,
+    n_samples: int = DEFAULT_SAMPLES,
+    fscore_threshold: float = DEFAULT_FSCORE_THRESHOLD,
+) -> dict:
+    """:func:`evaluate` on two mesh files (.glb, .ply, .obj, ...)."""
+    pred = load_mesh(pred_path)
+    gt = load_mesh(gt_path)
+    return evaluate(pred, gt, n_samples=n_samples, fscore_threshold=fscore_threshold)

@@ -1,0 +1,134 @@
+"""NeUDF as one module: the fields, and the path of a ray batch through sampler, renderer and normals."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from neudf_core.config import TrainConfig
+from neudf_core.fields import BackgroundNeRF, ColorNetwork, Sharpness, UDFNetwork
+from neudf_core.normals import regularised_normals
+from neudf_core.renderer import alpha_for_mode, composite, section_ends, weights_from_alpha
+from neudf_core.sampler import hierarchical_samples, near_far_from_sphere, outside_samples, stratified
+
+
+@dataclass
+class RenderState:
+    """What changes with the training step and is not a weight: annealing and sampling switches."""
+
+    cos_anneal: float = 1.0
+    perturb: bool = False
+    importance: bool = True
+    with_grad: bool = False  # keep the graph through gradients (the eikonal term needs it)
+
+
+class NeUDFModel(nn.Module):
+    def __init__(self, cfg: TrainConfig):
+        super().__init__()
+        self.cfg = cfg
+        f, c, b = cfg.field, cfg.color, cfg.background
+        self.signed = cfg.renderer.weight == "neus_sdf"
+        # An unsigned field starts as the distance to the origin: unit gradient everywhere and no region
+        # where the output Softplus is saturated (a solid ball's inside would be Psi = 0 with no gradient
+        # to leave it). The signed baseline starts as NeuS does, from a sphere.
+        radius = f.init_radius if f.init_radius is not None else (0.5 if self.signed else 0.0)
+        self.udf_net = UDFNetwork(f.d_hidden, f.n_layers, f.skip_in, f.n_freqs, f.d_feature, radius,
+                                  use_weight_norm=f.use_weight_norm, signed=self.signed)
+        self.color_net = ColorNetwork(f.d_feature, c.d_hidden, c.n_layers, c.n_freqs_view)
+        self.background = (BackgroundNeRF(b.d_hidden, b.n_layers, b.n_freqs) if self._use_background() else None)
+        self.sharpness = Sharpness(cfg.renderer.sharpness_init)
+
+    def _use_background(self) -> bool:
+        return self.cfg.background.enabled and not self.cfg.data.use_masks and not self.cfg.data.white_background
+
+    # -- the field as a function of space: the entry points meshing and evaluation use --------------
+    def udf(self, x: Tensor) -> Tensor:
+        """Psi(x) for points (N, 3) in unit-sphere coordinates; signed f for the NeuS-SDF baseline."""
+        return self.udf_net(x)[0]
+
+    def udf_and_grad(self, x: Tensor, create_graph: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+        """(Psi (N,), grad Psi (N, 3), feature (N, F))."""
+        with torch.enable_grad():
+            x = x.detach().requires_grad_(True)
+            psi, feature = self.udf_net(x)
+            (grad,) = torch.autograd.grad(psi.sum(), x, create_graph=create_graph)
+        return psi, grad, feature
+
+    def color(self, x: Tensor, normal: Tensor, view_dir: Tensor) -> Tensor:
+        """RGB in 0..1 of points seen along ``view_dir`` with surface normal ``normal``."""
+        _, feature = self.udf_net(x)
+        return self.color_net(x, view_dir, normal, feature)
+
+    # -- volume rendering ---------------------------------------------------------------------------
+    def render(self, rays_o: Tensor, rays_d: Tensor, state: RenderState, bg_color: Tensor | None = None) -> dict:
+        """Render a batch of rays (R, 3). Returns a flat dict of named outputs (see the keys below)."""
+        cfg_s, cfg_r = self.cfg.sampler, self.cfg.renderer
+        near, far = near_far_from_sphere(rays_o, rays_d)
+        z = stratified(near, far, cfg_s.n_coarse, state.perturb)
+        if state.importance:
+            # The zeta_s sampler reads the unsigned distance, so the SDF baseline samples around |f| = 0.
+            z = hierarchical_samples(rays_o, rays_d, z, lambda p: self.udf(p).abs(), cfg_s.n_importance,
+                                     cfg_s.n_rounds, cfg_s.s0, deterministic=not state.perturb)
+        # Sections between consecutive depths; the last one gets the coarse spacing, as in NeuS.
+        dists = torch.cat([z[:, 1:] - z[:, :-1], ((far - near) / cfg_s.n_coarse)[:, None]], -1)
+        mid_z = z + 0.5 * dists
+        points = rays_o[:, None] + rays_d[:, None] * mid_z[..., None]
+        n_rays, n_samples = mid_z.shape
+        flat = points.reshape(-1, 3)
+        psi, grad, feature = self.udf_and_grad(flat, create_graph=state.with_grad)
+        psi, grad = psi.reshape(n_rays, n_samples), grad.reshape(n_rays, n_samples, 3)
+        if not state.with_grad:
+            grad = grad.detach()
+
+        sharp = self.sharpness()
+        if cfg_r.section == "samples":
+            # The paper's literal form: the two ends of a section are consecutive samples.
+            prev, nxt = psi, torch.cat([psi[:, 1:], psi[:, -1:]], -1)
+        else:
+            cos = (rays_d[:, None] * grad).sum(-1)
+            prev, nxt = section_ends(psi, cos, dists, state.cos_anneal, signed=self.signed)
+        alpha = alpha_for_mode(cfg_r.weight, prev, nxt, sharp, cfg_r.varsigma)
+
+        inside = (points.norm(dim=-1) < 1.0).float()
+        if self.background is not None:
+            alpha = alpha * inside  # beyond the sphere the background model owns the ray
+        weights, transmittance = weights_from_alpha(alpha)
+
+        normals = regularised_normals(points, grad, cfg_r.normal_reg_k)
+        view_dirs = rays_d[:, None].expand(-1, n_samples, -1).reshape(-1, 3)
+        rgb = self.color_net(flat, view_dirs, normals.reshape(-1, 3), feature).reshape(n_rays, n_samples, 3)
+        color = composite(weights, rgb)
+
+        if self.background is not None:
+            bg = self._render_background(rays_o, rays_d, far, state.perturb)
+        elif bg_color is not None:
+            bg = bg_color.expand_as(color)
+        else:
+            bg = torch.zeros_like(color)
+        color = color + transmittance[:, None] * bg
+
+        return {
+            "color": color,
+            "weight_sum": weights.sum(-1),
+            "depth": (weights * mid_z).sum(-1),
+            "weights": weights,
+            "psi": psi,
+            "gradients": grad,
+            "normals": normals,
+            "inside": inside,
+            "sharpness": sharp.detach(),
+            "mid_z": mid_z,
+        }
+
+    def _render_background(self, rays_o: Tensor, rays_d: Tensor, far: Tensor, perturb: bool) -> Tensor:
+        z = outside_samples(far, self.cfg.background.n_samples, perturb)
+        pts = rays_o[:, None] + rays_d[:, None] * z[..., None]
+        view = rays_d[:, None].expand_as(pts)
+        sigma, rgb = self.background(pts.reshape(-1, 3), view.reshape(-1, 3))
+        # In inverted-sphere space the natural step is the change of 1/|x|; far samples get long sections.
+        delta = torch.cat([z[:, 1:] - z[:, :-1], torch.full_like(z[:, :1], 1e10)], -1)
+        alpha = 1.0 - torch.exp(-sigma.reshape(z.shape) * delta / z.clamp_min(1e-3))
+        w, _ = weights_from_alpha(alpha)
+        return composite(w, rgb.reshape(*z.shape, 3))

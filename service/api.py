@@ -1,0 +1,219 @@
+"""REST routes (../shared/CONTRACT.md): jobs, their artifacts, cancel, delete, health.
+
+The upload is read from the request stream part by part and written straight into a staging file,
+counting bytes: past ``max_upload_mb`` the request ends with 413 and the partial file is removed. (FastAPI's
+``UploadFile`` would first spool the whole body to a temporary file with no limit.)
+"""
+
+from __future__ import annotations
+
+import shutil
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi.responses import FileResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from python_multipart.multipart import MultipartParser, parse_options_header
+from starlette.concurrency import run_in_threadpool
+
+from service.jobs import JobRejected, JobService
+from service.models import Health, JobList, JobPublic
+from service.settings import Settings, get_settings
+
+router = APIRouter(prefix="/api")
+_bearer = HTTPBearer(auto_error=False, description="Needed when NEUDF_AUTH_TOKENS is set")
+
+MAX_FIELD_BYTES = 4096
+MEDIA_TYPES = {".glb": "model/gltf-binary", ".ply": "application/octet-stream", ".png": "image/png",
+               ".json": "application/json", ".jsonl": "application/x-ndjson"}
+
+
+def get_service(request: Request) -> JobService:
+    return request.app.state.service
+
+
+def get_owner(
+    settings: Annotated[Settings, Depends(get_settings)],
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> str | None:
+    """The caller's owner key when tokens are configured (401 without a valid one); None otherwise."""
+    if not settings.auth_enabled:
+        return None
+    owner = settings.owner_of(credentials.credentials) if credentials else None
+    if owner is None:
+        raise JobRejected(401, "a valid bearer token is required (Authorization: Bearer <token>)")
+    return owner
+
+
+ServiceDep = Annotated[JobService, Depends(get_service)]
+OwnerDep = Annotated[str | None, Depends(get_owner)]
+
+
+class _UploadSink:
+    """Callbacks for python-multipart: the ``file`` part into a file (size-capped), other parts as fields."""
+
+    def __init__(self, path, limit: int) -> None:  # noqa: ANN001 - a Path
+        self.path, self.limit = path, limit
+        self.file_bytes = 0
+        self.filename: str | None = None
+        self.fields: dict[str, str] = {}
+        self.error: JobRejected | None = None
+        self._headers: dict[bytes, bytes] = {}
+        self._field_name = self._header_value = b""
+        self._part: str | None = None  # "file" or a field name
+        self._buffer = bytearray()
+        self._out = None
+
+    def callbacks(self) -> dict:
+        return {
+            "on_part_begin": self._part_begin, "on_header_field": self._header_field,
+            "on_header_value": self._header_val, "on_header_end": self._header_end,
+            "on_headers_finished": self._headers_done, "on_part_data": self._data, "on_part_end": self._part_end,
+        }
+
+    def _part_begin(self) -> None:
+        self._headers, self._part, self._buffer = {}, None, bytearray()
+        self._field_name = self._header_value = b""
+
+    def _header_field(self, data: bytes, start: int, end: int) -> None:
+        self._field_name += data[start:end]
+
+    def _header_val(self, data: bytes, start: int, end: int) -> None:
+        self._header_value += data[start:end]
+
+    def _header_end(self) -> None:
+        self._headers[self._field_name.lower()] = self._header_value
+        self._field_name = self._header_value = b""
+
+    def _headers_done(self) -> None:
+        _, params = parse_options_header(self._headers.get(b"content-disposition", b""))
+        name = params.get(b"name", b"").decode("utf-8", "replace")
+        if name == "file":
+            if self._out is not None:
+                self.error = JobRejected(422, "send one file per job")
+                return
+            self._part = "file"
+            self.filename = params.get(b"filename", b"video").decode("utf-8", "replace") or "video"
+            self._out = open(self.path, "wb")  # noqa: SIM115 - closed in _part_end / close()
+        else:
+            self._part = name
+
+    def _data(self, data: bytes, start: int, end: int) -> None:
+        if self.error is not None:
+            return
+        if self._part == "file":
+            self.file_bytes += end - start
+            if self.file_bytes > self.limit:
+                self.error = JobRejected(413, f"the upload is larger than the limit of {self.limit / 2**20:g} MB")
+                return
+            self._out.write(data[start:end])
+        elif self._part is not None:
+            self._buffer += data[start:end]
+            if len(self._buffer) > MAX_FIELD_BYTES:
+                self.error = JobRejected(422, f"form field {self._part!r} is too long")
+
+    def _part_end(self) -> None:
+        if self._part == "file" and self._out is not None:
+            self._out.close()
+        elif self._part is not None and self.error is None:
+            self.fields[self._part] = self._buffer.decode("utf-8", "replace").strip()
+        self._part = None
+
+    def close(self) -> None:
+        if self._out is not None and not self._out.closed:
+            self._out.close()
+
+
+_UPLOAD_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {"multipart/form-data": {"schema": {
+            "type": "object",
+            "required": ["file"],
+            "properties": {
+                "file": {"type": "string", "format": "binary", "description": "The video (MP4, MOV, ...)"},
+                "preset": {"type": "string", "description": "quick, fast or paper"},
+                "frames": {"type": "integer", "description": "Frames to pick from the video"},
+                "iters": {"type": "integer", "description": "Training iterations"},
+                "max_size": {"type": "integer", "description": "Longest side of frames given to SIFT"},
+                "mesh_method": {"type": "string", "description": "spsr or meshudf"},
+                "mesh_resolution": {"type": "integer", "description": "Grid resolution of mesh extraction"},
+            },
+        }}},
+    }
+}
+
+
+@router.post("/jobs", status_code=201, response_model=JobPublic, openapi_extra=_UPLOAD_BODY,
+             responses={400: {}, 401: {}, 413: {}, 415: {}, 422: {}, 503: {}}, tags=["jobs"])
+async def create_job(request: Request, service: ServiceDep, owner: OwnerDep,
+                     settings: Annotated[Settings, Depends(get_settings)]) -> JobPublic:
+    """Upload a video (multipart field ``file``) with optional ``preset``, ``frames``, ``iters``; 201 with the job."""
+    content_type = request.headers.get("content-type", "")
+    ctype, params = parse_options_header(content_type)
+    if ctype != b"multipart/form-data" or b"boundary" not in params:
+        raise JobRejected(415, "send the video as multipart/form-data with a 'file' field")
+    limit = settings.max_upload_bytes
+    declared = request.headers.get("content-length")
+    if declared and declared.isdigit() and int(declared) > limit + 64 * 1024:
+        raise JobRejected(413, f"the upload is larger than the limit of {settings.max_upload_mb:g} MB")
+    staging = service.staging_dir()
+    sink = _UploadSink(staging / "upload", limit)
+    try:
+        parser = MultipartParser(params[b"boundary"], sink.callbacks())
+        async for chunk in request.stream():
+            parser.write(chunk)
+            if sink.error is not None:
+                raise sink.error
+        parser.finalize()
+        sink.close()
+        if sink.error is not None:
+            raise sink.error
+        if sink.filename is None:
+            raise JobRejected(422, "the form has no 'file' field with the video")
+        job = await run_in_threadpool(service.create, staging / "upload", sink.filename, sink.fields, owner)
+    finally:
+        sink.close()
+        shutil.rmtree(staging, ignore_errors=True)
+    return service.public(job)
+
+
+@router.get("/jobs", response_model=JobList, tags=["jobs"])
+def list_jobs(service: ServiceDep, owner: OwnerDep, limit: Annotated[int, Query(ge=1, le=200)] = 20,
+              offset: Annotated[int, Query(ge=0)] = 0) -> JobList:
+    """Jobs, newest first."""
+    jobs, total = service.list(owner, limit, offset)
+    return JobList(items=[service.public(j) for j in jobs], total=total, limit=limit, offset=offset)
+
+
+@router.get("/jobs/{job_id}", response_model=JobPublic, responses={404: {}}, tags=["jobs"])
+def get_job(job_id: str, service: ServiceDep, owner: OwnerDep) -> JobPublic:
+    """One job: state, stage, progress overall and per stage, error, metrics, artifact URLs."""
+    return service.public(service.get(job_id, owner))
+
+
+@router.get("/jobs/{job_id}/artifacts/{name:path}", responses={400: {}, 404: {}}, tags=["jobs"],
+            response_class=FileResponse)
+def get_artifact(job_id: str, name: str, service: ServiceDep, owner: OwnerDep) -> FileResponse:
+    """A file of the job: mesh.glb, mesh.ply, preview.png, loss.png, frames.png, cameras.png, metrics.json, ..."""
+    path = service.artifact(job_id, name, owner)
+    return FileResponse(path, media_type=MEDIA_TYPES.get(path.suffix, "application/octet-stream"), filename=name)
+
+
+@router.post("/jobs/{job_id}/cancel", response_model=JobPublic, responses={404: {}, 409: {}}, tags=["jobs"])
+def cancel_job(job_id: str, service: ServiceDep, owner: OwnerDep) -> JobPublic:
+    """Cancel a queued job at once, or a running one at its next progress report. 409 for a finished job."""
+    return service.public(service.cancel(job_id, owner))
+
+
+@router.delete("/jobs/{job_id}", status_code=204, responses={404: {}, 409: {}}, tags=["jobs"])
+def delete_job(job_id: str, service: ServiceDep, owner: OwnerDep) -> Response:
+    """Remove a finished job and its files. 409 while it is queued or running."""
+    service.delete(job_id, owner)
+    return Response(status_code=204)
+
+
+@router.get("/health", response_model=Health, tags=["health"])
+def health(service: ServiceDep) -> Health:
+    """Database, broker and worker reachability."""
+    return service.health()

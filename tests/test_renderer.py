@@ -1,0 +1,151 @@
+"""The paper's claims about the rendering weight, checked on analytic fields (no training).
+
+A ray p(t) = t v crosses planes at known depths; the UDF along it is the distance to the nearest plane.
+"""
+
+import math
+
+import pytest
+import torch
+
+from neudf_core.normals import regularised_normals
+from neudf_core.renderer import alpha_for_mode, section_ends, varsigma, weights_from_alpha
+from neudf_core.sampler import hierarchical_samples, importance_weights
+
+COS = math.cos(math.radians(30))  # the ray meets the planes at 30 degrees from their normal
+
+
+def plane_udf(t: torch.Tensor, hits: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
+    """UDF along the ray and its directional derivative, for planes crossed at depths ``hits``."""
+    offsets = torch.stack([t - h for h in hits])
+    nearest = offsets.abs().argmin(0)
+    signed = offsets.gather(0, nearest[None])[0]
+    return COS * signed.abs(), COS * torch.sign(signed)
+
+
+def render_weights(hits, mode, sharpness, n=2000, t0=0.0, t1=4.0):
+    """Dense sections on [t0, t1]; returns (section mid-points, weights)."""
+    z = torch.linspace(t0, t1, n + 1, dtype=torch.float64)[None]
+    dists = z[:, 1:] - z[:, :-1]
+    mid = z[:, :-1] + dists / 2
+    psi, slope = plane_udf(mid, hits)
+    signed = mode == "neus_sdf"
+    prev, nxt = section_ends(psi, slope, dists, cos_anneal=1.0, signed=signed)
+    alpha = alpha_for_mode(mode, prev, nxt, torch.tensor(sharpness, dtype=torch.float64))
+    weights, _ = weights_from_alpha(alpha)
+    return mid[0], weights[0]
+
+
+def mass_near(mid, weights, depth, band=0.05):
+    return float(weights[(mid - depth).abs() < band].sum())
+
+
+@pytest.mark.parametrize("r", [1.0, 10.0, 100.0, 1000.0])
+def test_neudf_weight_peaks_at_the_intersection(r):
+    mid, w = render_weights([2.0], "neudf", r)
+    assert abs(float(mid[w.argmax()]) - 2.0) < 2 * (4.0 / 2000)
+
+
+def test_neudf_mass_concentrates_on_the_first_of_two_surfaces():
+    masses = [mass_near(*render_weights([1.5, 2.5], "neudf", r), 1.5) for r in (1.0, 10.0, 100.0, 1000.0, 1e4)]
+    assert all(b >= a - 1e-9 for a, b in zip(masses, masses[1:])), masses  # grows with r
+    assert masses[-1] > 0.95
+    assert masses[-2] > 0.9
+    mid, w = render_weights([1.5, 2.5], "neudf", 1e4)
+    assert mass_near(mid, w, 2.5) < 0.02  # the hidden surface gets almost nothing
+
+
+def test_naive_neus_on_udf_puts_only_half_the_mass_on_the_first_surface():
+    masses = [mass_near(*render_weights([1.5, 2.5], "neus_abs", s), 1.5) for s in (100.0, 1000.0, 1e4)]
+    for m in masses:
+        assert abs(m - 0.5) < 0.03, masses
+    mid, w = render_weights([1.5, 2.5], "neus_abs", 1e4)
+    assert mass_near(mid, w, 2.5) > 0.2  # the other half leaks behind: the bias the paper describes
+
+
+def test_neus_on_a_signed_field_is_unbiased_for_a_closed_surface():
+    # A solid slab between 1.5 and 2.5: SDF negative inside; NeuS stops at its front face.
+    z = torch.linspace(0.0, 4.0, 2001, dtype=torch.float64)[None]
+    dists = z[:, 1:] - z[:, :-1]
+    mid = z[:, :-1] + dists / 2
+    sdf = COS * torch.maximum(1.5 - mid, mid - 2.5)
+    slope = torch.where(mid < 2.0, -COS, COS).to(torch.float64)
+    prev, nxt = section_ends(sdf, slope, dists, 1.0, signed=True)
+    w, _ = weights_from_alpha(alpha_for_mode("neus_sdf", prev, nxt, torch.tensor(1e4, dtype=torch.float64)))
+    assert mass_near(mid[0], w[0], 1.5) > 0.95
+
+
+@pytest.mark.parametrize("kind", ["rational", "exp", "atan"])
+def test_varsigma_choices_follow_the_papers_rules(kind):
+    d = torch.linspace(1e-3, 8.0, 4000, dtype=torch.float64, requires_grad=True)
+    v = varsigma(d, 2.0, kind)
+    (d1,) = torch.autograd.grad(v.sum(), d, create_graph=True)
+    (d2,) = torch.autograd.grad(d1.sum(), d)
+    assert float(varsigma(torch.zeros(1, dtype=torch.float64), 2.0, kind)) == 0.0
+    assert abs(float(varsigma(torch.tensor([1e6], dtype=torch.float64), 2.0, kind)) - 1.0) < 1e-5
+    assert bool((d1 > 0).all()) and bool((d2 < 0).all())
+
+
+def test_unknown_varsigma_and_mode_are_rejected():
+    with pytest.raises(ValueError, match="varsigma"):
+        varsigma(torch.ones(1), 1.0, "tanh")
+    with pytest.raises(ValueError, match="weight mode"):
+        alpha_for_mode("volsdf", torch.ones(1), torch.ones(1), 1.0)
+
+
+def test_importance_sampler_puts_most_new_samples_near_the_surface():
+    torch.manual_seed(0)
+    n_rays = 64
+    rays_o = torch.zeros(n_rays, 3)
+    rays_d = torch.tensor([[0.0, 0.0, 1.0]]).expand(n_rays, 3)
+    depth = 1.0 + torch.rand(n_rays)  # a plane z = depth per ray, somewhere in [1, 2]
+    z = torch.linspace(0.0, 3.0, 64).expand(n_rays, 64)
+
+    def udf(points):
+        return (points[:, 2].reshape(n_rays, -1) - depth[:, None]).abs().reshape(-1)
+
+    out = hierarchical_samples(rays_o, rays_d, z, udf, n_importance=64, n_rounds=2, s0=64.0, deterministic=True)
+    assert out.shape == (n_rays, 128)
+    assert bool((out[:, 1:] >= out[:, :-1]).all())
+    near = ((out - depth[:, None]).abs() < 0.1).float().sum(1) - ((z - depth[:, None]).abs() < 0.1).float().sum(1)
+    assert float(near.mean()) > 0.8 * 64  # of the 64 new samples per ray, most land within 0.1 of the surface
+
+
+def test_importance_weights_are_symmetric_about_the_surface():
+    # zeta_s is even in the UDF, so the sampler does not favour either side (unlike the rendering weight).
+    z = torch.linspace(0.0, 2.0, 401)[None]
+    w = importance_weights(z, (z - 1.0).abs(), s=64.0)[0]
+    mid = 0.5 * (z[0, 1:] + z[0, :-1])
+    before = float(w[(mid > 0.9) & (mid < 1.0)].sum())
+    after = float(w[(mid > 1.0) & (mid < 1.1)].sum())
+    assert before > 0.2 and after > 0.1
+    assert abs(float(w.sum()) - 1.0) < 1e-5
+
+
+def test_regularised_normal_is_stable_across_the_cusp():
+    # A ray crosses the plane z = 1 head on; the raw UDF gradient flips from -z to +z at the crossing.
+    z = torch.linspace(0.5, 1.5, 40)  # no sample exactly on the plane
+    points = torch.stack([torch.zeros_like(z), torch.zeros_like(z), z], -1)[None]
+    grads = torch.zeros_like(points)
+    grads[..., 2] = torch.sign(z - 1.0)  # d|z-1|/dz
+    normals = regularised_normals(points, grads, k_neighbours=5)[0]
+    raw = grads[0]
+    crossing = int((z > 1.0).nonzero()[0])
+    just_after = slice(crossing, crossing + 2)
+    assert bool((raw[just_after, 2] > 0).all()) and bool((raw[crossing - 2:crossing, 2] < 0).all())
+    # The regularised normal keeps the approach side's direction for the samples right past the cusp.
+    assert bool((normals[just_after, 2] < 0).all())
+    # And it is a weighted mean of previous gradients: farther samples weigh more.
+    i = crossing + 2
+    w = torch.tensor([(points[0, i] - points[0, i - k]).pow(2).sum() for k in range(1, 6)])
+    expected = (w[:, None] * raw[[i - k for k in range(1, 6)]]).sum(0) / w.sum()
+    assert torch.allclose(normals[i], expected, atol=1e-6)
+    assert torch.equal(normals[0], raw[0])  # the first sample has no history
+
+
+def test_transmittance_telescopes_to_the_varsigma_ratio():
+    # Approaching a surface, prod(1 - alpha) = varsigma(Psi(t)) / varsigma(Psi(t_0)) (supplement, Sec. C).
+    mid, w = render_weights([3.0], "neudf", 5.0, n=400, t0=0.0, t1=2.0)
+    psi_start, psi_end = COS * 3.0, COS * 1.0
+    expected = float(varsigma(torch.tensor(psi_end), 5.0) / varsigma(torch.tensor(psi_start), 5.0))
+    assert abs((1 - float(w.sum())) - expected) < 0.01

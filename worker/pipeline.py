@@ -1,0 +1,285 @@
+"""One job: frames -> poses -> scene -> train -> mesh -> export, each stage a plain function on the job folder.
+
+A stage reads files of the job folder and writes files into it. When it returns, a marker
+``stages/<name>.json`` records it finished (with its seconds and figures); a stage whose marker and
+outputs are both present is skipped, so a job that was interrupted resumes after its last finished stage
+(training itself also resumes from its last checkpoint). When a stage has to run again, the stages after
+it are cleared, since their inputs changed.
+
+The same ``run_pipeline`` runs from the CLI (``neudf reconstruct``), from a Celery task and from tests.
+Progress goes to one callback: the overall fraction (stages weighted by their usual share of the time),
+a message, and ``stage``, ``stage_progress``, ``event`` ("start", "progress", "done", "skipped") plus the
+stage's own figures (loss, psnr, eta_s ...). A callback that raises ``Cancelled`` stops the job there.
+Errors leave as ``StageError(stage, message)``.
+
+Job folder::
+
+    input/video.<ext>        the upload, never modified
+    data/                    the NeuS dataset (image/, cameras_sphere.npz, frames.json, capture.json, cameras.png)
+    run/                     training (config.json, checkpoints/, metrics.jsonl, validation/)
+    mesh/mesh.ply            the extracted mesh
+    export/                  mesh.glb, mesh.ply, preview.png, loss.png, frames.png, metrics.json
+    stages/<name>.json       finished-stage markers
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from neudf_core.progress import Cancelled, ProgressFn, null_progress, sub_progress
+from worker.errors import StageError
+
+__all__ = ["JobOptions", "STAGES", "STAGE_NAMES", "run_pipeline", "artifact_files", "completed_stages", "StageError",
+           "Cancelled"]
+
+
+class JobOptions(BaseModel):
+    """What a user may choose for one job. Unset fields take each stage's own default."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    preset: str = Field("quick", description="Training preset: quick (CPU smoke run), fast, paper.")
+    frames: int | None = Field(None, ge=8, le=2000, description="Frames to pick from the video.")
+    iters: int | None = Field(None, ge=1, le=2_000_000, description="Training iterations (default: the preset's).")
+    max_size: int | None = Field(None, ge=64, le=8192, description="Longest side of the frames given to SIFT.")
+    mesh_method: Literal["spsr", "meshudf"] | None = Field(None, description="Open-surface extraction method.")
+    mesh_resolution: int | None = Field(None, ge=16, le=2048, description="Grid resolution of mesh extraction.")
+
+    @field_validator("preset")
+    @classmethod
+    def _known_preset(cls, value: str) -> str:
+        from neudf_core.config import available_presets
+
+        presets = available_presets()
+        if value not in presets:
+            raise ValueError(f"unknown preset {value!r}; available: {', '.join(presets)}")
+        return value
+
+
+@dataclass
+class JobContext:
+    job_dir: Path
+    video: Path
+    options: JobOptions
+    device: str
+
+    @property
+    def data_dir(self) -> Path:
+        return self.job_dir / "data"
+
+    @property
+    def run_dir(self) -> Path:
+        return self.job_dir / "run"
+
+    @property
+    def mesh_file(self) -> Path:
+        return self.job_dir / "mesh" / "mesh.ply"
+
+    @property
+    def export_dir(self) -> Path:
+        return self.job_dir / "export"
+
+
+# -- the stages: thin adapters over the functions that do the work -------------------------------------
+def _frames(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
+    from worker.stages.frames import extract_frames
+
+    kwargs: dict[str, Any] = {}
+    if ctx.options.frames is not None:
+        kwargs["n_frames"] = ctx.options.frames
+    if ctx.options.max_size is not None:
+        kwargs["max_size"] = ctx.options.max_size
+    extract_frames(ctx.video, ctx.data_dir, progress=progress, **kwargs)
+    from worker.stages.export import write_frames_montage
+
+    write_frames_montage(ctx.data_dir / "image", ctx.export_dir / "frames.png")
+    return {"frames_selected": len(list((ctx.data_dir / "image").glob("*.png")))}
+
+
+def _poses(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
+    from worker.stages.poses import estimate_poses
+
+    estimate_poses(ctx.data_dir, progress=progress)
+    return {}
+
+
+def _scene(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
+    from worker.stages.scene import write_scene
+
+    write_scene(ctx.data_dir, progress=progress)
+    capture_file = ctx.data_dir / "capture.json"
+    if capture_file.is_file():
+        capture = json.loads(capture_file.read_text())
+        return {k: capture[k] for k in ("frames_total", "frames_registered", "reprojection_error_px") if k in capture}
+    return {}
+
+
+def _train(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
+    from neudf_core.trainer import train
+
+    result = train(ctx.data_dir, ctx.run_dir, preset=ctx.options.preset, iters=ctx.options.iters,
+                   device=ctx.device, progress=progress)
+    keep = ("iters", "psnr", "loss", "iters_per_s", "images", "preset")
+    return {f"train_{k}" if k in ("loss", "psnr") else k: result[k] for k in keep if result.get(k) is not None}
+
+
+def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
+    from neudf_core.export import mesh_run
+
+    kwargs: dict[str, Any] = {}
+    if ctx.options.mesh_method is not None:
+        kwargs["method"] = ctx.options.mesh_method
+    if ctx.options.mesh_resolution is not None:
+        kwargs["resolution"] = ctx.options.mesh_resolution
+    ctx.mesh_file.parent.mkdir(parents=True, exist_ok=True)
+    result = mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress, **kwargs)
+    return {f"mesh_{k}": v for k, v in result.items() if isinstance(v, int | float | str)} if isinstance(result, dict) else {}
+
+
+def _export(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
+    from worker.stages.export import export_job
+
+    return export_job(ctx.mesh_file, ctx.data_dir, ctx.run_dir, ctx.export_dir, progress=progress)
+
+
+@dataclass(frozen=True)
+class Stage:
+    name: str
+    weight: float  # share of a typical job's time, for the overall progress
+    run: Callable[[JobContext, ProgressFn], dict[str, Any]]
+    outputs: Callable[[JobContext], list[Path]]
+    # Folders that belong to this stage alone: cleared when an earlier stage had to run again.
+    owns: Callable[[JobContext], list[Path]] = field(default=lambda ctx: [])
+
+
+STAGES: tuple[Stage, ...] = (
+    Stage("frames", 0.04, _frames, lambda c: [c.data_dir / "image", c.data_dir / "frames.json"]),
+    Stage("poses", 0.16, _poses, lambda c: [c.data_dir]),
+    Stage("scene", 0.02, _scene, lambda c: [c.data_dir / "cameras_sphere.npz"]),
+    Stage("train", 0.65, _train, lambda c: [c.run_dir / "config.json", c.run_dir / "metrics.jsonl"],
+          owns=lambda c: [c.run_dir]),
+    Stage("mesh", 0.10, _mesh, lambda c: [c.mesh_file], owns=lambda c: [c.mesh_file.parent]),
+    Stage("export", 0.03, _export, lambda c: [c.export_dir / "mesh.glb", c.export_dir / "metrics.json"],
+          owns=lambda c: [c.export_dir / n for n in ("mesh.glb", "mesh.ply", "preview.png", "loss.png", "metrics.json")]),
+)
+STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)
+
+
+def _marker(job_dir: Path, name: str) -> Path:
+    return job_dir / "stages" / f"{name}.json"
+
+
+def _is_complete(stage: Stage, ctx: JobContext) -> bool:
+    return _marker(ctx.job_dir, stage.name).is_file() and all(p.exists() for p in stage.outputs(ctx))
+
+
+def _write_marker(job_dir: Path, name: str, record: dict[str, Any]) -> None:
+    marker = _marker(job_dir, name)
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    tmp = marker.with_suffix(".tmp")
+    tmp.write_text(json.dumps(record, indent=2))
+    os.replace(tmp, marker)  # atomic: a marker is either whole or absent
+
+
+def completed_stages(job_dir: Path) -> dict[str, dict[str, Any]]:
+    """The finished-stage markers of a job folder, by stage name."""
+    out = {}
+    for name in STAGE_NAMES:
+        marker = _marker(job_dir, name)
+        if marker.is_file():
+            out[name] = json.loads(marker.read_text())
+    return out
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir():
+        shutil.rmtree(path, ignore_errors=True)
+    elif path.exists():
+        path.unlink()
+
+
+def run_pipeline(video: str | Path, job_dir: str | Path, options: JobOptions | None = None,
+                 progress: ProgressFn = null_progress, *, device: str = "cpu") -> dict[str, Any]:
+    """Run (or resume) every stage of one job; returns the merged figures of all stages."""
+    ctx = JobContext(Path(job_dir), Path(video), options or JobOptions(), device)
+    ctx.job_dir.mkdir(parents=True, exist_ok=True)
+    total_weight = sum(s.weight for s in STAGES)
+    start = 0.0
+    metrics: dict[str, Any] = {}
+    must_run = False  # once a stage runs, every later stage runs too
+    for stage in STAGES:
+        end = start + stage.weight / total_weight
+        if not must_run and _is_complete(stage, ctx):
+            record = json.loads(_marker(ctx.job_dir, stage.name).read_text())
+            metrics.update(record.get("metrics", {}))
+            progress(end, f"{stage.name}: done earlier", stage=stage.name, stage_progress=1.0, event="skipped",
+                     seconds=record.get("seconds"))
+            start = end
+            continue
+        if not must_run:  # the first stage to run: later stages' outputs are stale
+            for later in STAGES[STAGES.index(stage) + 1:]:
+                _remove(_marker(ctx.job_dir, later.name))
+                for path in later.owns(ctx):
+                    _remove(path)
+            must_run = True
+        _remove(_marker(ctx.job_dir, stage.name))
+        metrics.update(_run_stage(stage, ctx, progress, start, end))
+        start = end
+    return metrics
+
+
+def _run_stage(stage: Stage, ctx: JobContext, progress: ProgressFn, start: float, end: float) -> dict[str, Any]:
+    progress(start, f"{stage.name}: started", stage=stage.name, stage_progress=0.0, event="start")
+    overall = sub_progress(progress, start, end)
+
+    def report(fraction: float, message: str = "", **info: Any) -> None:
+        fraction = min(max(fraction, 0.0), 1.0)
+        overall(fraction, f"{stage.name}: {message}" if message else stage.name, stage=stage.name,
+                stage_progress=fraction, event="progress", **info)
+
+    t0 = time.perf_counter()
+    try:
+        figures = stage.run(ctx, report) or {}
+    except (Cancelled, StageError):
+        raise
+    except Exception as exc:  # anything else still names its stage
+        raise StageError(stage.name, f"{type(exc).__name__}: {exc}") from exc
+    seconds = round(time.perf_counter() - t0, 3)
+    _write_marker(ctx.job_dir, stage.name, {"finished_at": time.time(), "seconds": seconds, "metrics": figures})
+    progress(end, f"{stage.name}: done in {seconds:.1f} s", stage=stage.name, stage_progress=1.0, event="done",
+             seconds=seconds, metrics=figures)
+    return figures
+
+
+# -- what a finished (or running) job can hand out ---------------------------------------------------
+def _latest(folder: Path, pattern: str) -> Path | None:
+    files = sorted(folder.glob(pattern)) if folder.is_dir() else []
+    return files[-1] if files else None
+
+
+def artifact_files(job_dir: str | Path) -> dict[str, Path]:
+    """Artifact name -> file, for the files that exist now. Names are fixed: nothing else is served."""
+    job = Path(job_dir)
+    candidates: dict[str, Path | None] = {
+        "mesh.glb": job / "export" / "mesh.glb",
+        "mesh.ply": job / "export" / "mesh.ply",
+        "preview.png": job / "export" / "preview.png",
+        "loss.png": job / "export" / "loss.png",
+        "frames.png": job / "export" / "frames.png",
+        "metrics.json": job / "export" / "metrics.json",
+        "cameras.png": job / "data" / "cameras.png",
+        "capture.json": job / "data" / "capture.json",
+        "frames.json": job / "data" / "frames.json",
+        "metrics.jsonl": job / "run" / "metrics.jsonl",
+        "validation.png": _latest(job / "run" / "validation", "*.png"),
+    }
+    return {name: path for name, path in candidates.items() if path is not None and path.is_file()}
