@@ -58,6 +58,9 @@ NEAR_MAX_VOXELS = 1.74
 # the edge (the surface lies between them); a cell whose normalised gradient points *towards* the other
 # corner by more than this is rejected (a ridge of the UDF between two surfaces, not a surface).
 FACING_TOLERANCE = 0.1
+TIE_BREAK = np.array([0.267, 0.535, 0.802])  # a generic direction, for corners on the surface
+FACING_MIN_VOXELS = 0.25  # corners closer to the surface than this do not vote in the gradient test
+UNRELIABLE_GRAD = 0.3  # gradient norm (x the median) under which a corner counts as on the surface
 
 
 @dataclass(frozen=True)
@@ -133,6 +136,13 @@ def _autograd(fn: FieldFn, x: torch.Tensor) -> torch.Tensor | None:
         return torch.autograd.grad(y.sum(), x)[0]
 
 
+def _central_differences(fn: FieldFn, x: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    with torch.no_grad():
+        plus = torch.stack([fn(x + o).reshape(-1) for o in offsets], -1)
+        minus = torch.stack([fn(x - o).reshape(-1) for o in offsets], -1)
+        return (plus - minus) / (2 * offsets[0, 0])
+
+
 def evaluate_gradient(
     fn: FieldFn,
     points: np.ndarray,
@@ -165,11 +175,13 @@ def evaluate_gradient(
                 use_fd = True
                 log.info("field is not differentiable by autograd: central differences, step %.2g", step)
         if g is None:
-            with torch.no_grad():
-                plus = torch.stack([fn(x + o).reshape(-1) for o in offsets], -1)
-                minus = torch.stack([fn(x - o).reshape(-1) for o in offsets], -1)
-                g = (plus - minus) / (2 * step)
-        out[start : start + len(x)] = g.detach().reshape(-1, 3).float().cpu().numpy()
+            g = _central_differences(fn, x, offsets)
+        g = g.detach().reshape(-1, 3)
+        bad = ~torch.isfinite(g).all(-1)
+        if bad.any():  # autograd gives NaN where e.g. a norm is differentiated at 0: fall back there
+            g = g.clone()
+            g[bad] = _central_differences(fn, x[bad], offsets).to(g.dtype)
+        out[start : start + len(x)] = g.float().cpu().numpy()
         progress(min(start + chunk, len(points)) / max(len(points), 1), "evaluating gradients")
     return out
 
@@ -302,16 +314,18 @@ def triangle_table(key: int) -> np.ndarray:
 
 
 def marching_cubes(
-    grid: Grid, cells: np.ndarray, values: np.ndarray, cell_ids: np.ndarray | None = None
+    grid: Grid, cells: np.ndarray, values: np.ndarray, positive: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Vectorised marching cubes over selected cells.
 
-    ``cells`` (M, 3) cell indices, ``values`` (M, 8) corner values (>= 0 counts as positive; per cell,
-    so pseudo-signs may differ between neighbours). Returns vertices (V, 3), faces (F, 3) and, per face,
+    ``cells`` (M, 3) cell indices, ``values`` (M, 8) corner values, ``positive`` (M, 8) the corners'
+    sides (default ``values >= 0``; given explicitly where a value is 0 but its side is known). Signs
+    are per cell, so pseudo-signs may differ between neighbours. Returns vertices (V, 3), faces (F, 3) and, per face,
     the row of ``cells`` it came from. Vertices are shared through global edge ids, so a surface crossing
     cells whose signs agree comes out connected.
     """
-    positive = values >= 0
+    if positive is None:
+        positive = values >= 0
     case = (positive.astype(np.int64) << np.arange(8)).sum(1)
     face_bits = np.zeros(len(values), np.int64)
     for f, (ring, _) in enumerate(CUBE_FACES):
@@ -387,6 +401,61 @@ def _face_pairs(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return pairs, agree
 
 
+def _tree_parity(parent: np.ndarray, flip: np.ndarray) -> np.ndarray:
+    """XOR of ``flip`` along each node's path to its root (roots are their own parent; flip[root] = 0).
+
+    Pointer jumping: log2(depth) vectorised rounds instead of a Python walk over the tree.
+    """
+    parent, flip = parent.copy(), flip.copy()
+    while True:
+        grand = parent[parent]
+        if np.array_equal(grand, parent):
+            return flip
+        flip = flip ^ flip[parent]
+        parent = grand
+
+
+def _spanning_parents(graph, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Parent of each node in a breadth-first spanning forest of the symmetric ``graph``, and the roots."""
+    _, labels = connected_components(graph, directed=False)
+    roots = np.unique(labels, return_index=True)[1]
+    # one search from a virtual node (index n) linked to one node of every piece
+    coo = graph.tocoo()
+    src = np.concatenate([coo.row, np.full(len(roots), n)])
+    dst = np.concatenate([coo.col, roots])
+    full = coo_matrix((np.ones(len(src)), (src, dst)), shape=(n + 1, n + 1)).tocsr()
+    _, pred = breadth_first_order(full, n, directed=True, return_predecessors=True)
+    parent = pred[:n].astype(np.int64)
+    parent[roots] = roots
+    return parent, roots
+
+
+def orient_normals(points: np.ndarray, normals: np.ndarray, k: int = 12) -> np.ndarray:
+    """Flip unsigned normals into a consistent orientation per connected piece (Hoppe et al. 1992).
+
+    Minimum spanning tree of the k-nearest-neighbour graph weighted by 1 - |cos|, then each normal takes
+    its tree parent's side. open3d's orient_normals_consistent_tangent_plane does the same but builds a
+    Delaunay graph with qhull first, which fails on flat input (a planar sheet).
+    """
+    from scipy.sparse.csgraph import minimum_spanning_tree
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    _, nbr = cKDTree(points).query(points, k=min(k + 1, n), workers=-1)
+    rows = np.repeat(np.arange(n), nbr.shape[1] - 1)
+    cols = nbr[:, 1:].reshape(-1)
+    weight = 1.0 - np.abs(np.sum(normals[rows] * normals[cols], axis=1)) + 1e-6
+    mst = minimum_spanning_tree(coo_matrix((weight, (rows, cols)), shape=(n, n))).tocoo()
+    sym = coo_matrix(
+        (np.ones(2 * len(mst.row)), (np.concatenate([mst.row, mst.col]), np.concatenate([mst.col, mst.row]))),
+        shape=(n, n),
+    ).tocsr()
+    parent, roots = _spanning_parents(sym, n)
+    flip = np.sum(normals * normals[parent], axis=1) < 0
+    flip[roots] = False
+    return np.where(_tree_parity(parent, flip)[:, None], -normals, normals)
+
+
 def orient_faces(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """Make the winding consistent across each connected piece (a spanning tree over shared edges).
 
@@ -398,34 +467,22 @@ def orient_faces(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     if n == 0:
         return mesh
     pairs, agree = _face_pairs(faces)
-    _, labels = connected_components(
-        coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)), directed=False
-    )
-    roots = np.unique(labels, return_index=True)[1]
-    # one breadth-first search from a virtual node (index n) linked to one face of every piece
-    src = np.concatenate([pairs[:, 0], pairs[:, 1], np.full(len(roots), n)])
-    dst = np.concatenate([pairs[:, 1], pairs[:, 0], roots])
-    graph = coo_matrix((np.ones(len(src)), (src, dst)), shape=(n + 1, n + 1)).tocsr()
-    _, pred = breadth_first_order(graph, n, directed=True, return_predecessors=True)
-    parent = pred[:n].astype(np.int64)
-    parent[roots] = roots
+    adjacency = coo_matrix(
+        (np.ones(2 * len(pairs)), (np.concatenate([pairs[:, 0], pairs[:, 1]]),
+                                   np.concatenate([pairs[:, 1], pairs[:, 0]]))),
+        shape=(n, n),
+    ).tocsr()
+    parent, roots = _spanning_parents(adjacency, n)
     # does a face's winding disagree with its tree parent's? look the pair up by a sorted key
     pair_key = np.sort(pairs, axis=1) @ np.array([n, 1], np.int64)
     order = np.argsort(pair_key)
     child_key = np.sort(np.stack([np.arange(n), parent], -1), axis=1) @ np.array([n, 1], np.int64)
-    pos = np.clip(np.searchsorted(pair_key[order], child_key), 0, max(len(order) - 1, 0))
     flip = np.zeros(n, bool)
     if len(order):
-        found = pair_key[order][pos] == child_key
-        flip = found & ~agree[order][pos]
+        pos = np.clip(np.searchsorted(pair_key[order], child_key), 0, len(order) - 1)
+        flip = (pair_key[order][pos] == child_key) & ~agree[order][pos]
     flip[roots] = False
-    # parity to the root by pointer jumping: log2(depth) vectorised rounds
-    while True:
-        grand = parent[parent]
-        if np.array_equal(grand, parent):
-            break
-        flip = flip ^ flip[parent]
-        parent = grand
+    flip = _tree_parity(parent, flip)
     faces[flip] = faces[flip][:, ::-1]
     return trimesh.Trimesh(mesh.vertices, faces, process=False)
 
@@ -461,12 +518,53 @@ def _no_surface(what: str, sparse: SparseGrid, bounds: Bounds) -> ValueError:
     )
 
 
+def pseudo_signs(vals: np.ndarray, grads: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """MeshUDF's per-cell signs: (M, 8) +-1 and (M,) whether the cell passes the gradient test.
+
+    ``vals`` (M, 8) UDF and ``grads`` (M, 8, 3) gradients at each cell's corners. A corner is "+" when its
+    gradient agrees with the cell's reference gradient (that of the corner farthest from the surface,
+    the least affected by the cusp at the zero level) and "-" when it points the other way.
+
+    A corner whose gradient is unreliable -- exactly on the surface (an analytic field on a grid plane),
+    or weaker than UNRELIABLE_GRAD x the median gradient norm (a learned UDF flattens out in a band
+    around its zero level, where the gradient's direction is noise) -- is treated as on the surface and
+    nudged along -TIE_BREAK: it sits on the reference side iff the reference gradient faces away from
+    TIE_BREAK. The rule depends on the reference only through its side, so neighbouring cells agree.
+    """
+    norm = np.linalg.norm(grads, axis=-1)
+    g = grads / np.maximum(norm, 1e-12)[..., None]
+    unreliable = (vals <= 1e-6 * voxel) | (norm < UNRELIABLE_GRAD * np.median(norm))
+    far = np.where(unreliable, -np.inf, vals)
+    rows = np.arange(len(vals))
+    ref = g[rows, far.argmax(1)]
+    sign = np.where(np.einsum("mkc,mc->mk", g, ref) >= 0, 1.0, -1.0)
+    tie = np.where(ref @ TIE_BREAK < 0, 1.0, -1.0)
+    sign = np.where(unreliable, tie[:, None], sign)
+    # A sign change a -> b is believed when the gradients point away from each other along the edge
+    # (the surface lies between). Only reliable corners a fair way off the surface can vouch against it.
+    trusted = ~unreliable & (vals >= FACING_MIN_VOXELS * voxel)
+    facing = np.isfinite(far[rows, far.argmax(1)])  # a cell with no reliable corner has no reference
+    for a, b, ax in EDGES:
+        change = sign[:, a] != sign[:, b]
+        bad = (trusted[:, a] & (g[:, a, ax] > FACING_TOLERANCE)) | (trusted[:, b] & (g[:, b, ax] < -FACING_TOLERANCE))
+        facing &= ~(change & bad)
+    return sign, facing
+
+
 def _meshudf(
     udf_fn: FieldFn, grad_fn: GradFn | None, sparse: SparseGrid, threshold: float, bounds: Bounds,
     chunk: int, device: torch.device | str, progress: ProgressFn,
 ) -> trimesh.Trimesh:
     grid, h = sparse.grid, sparse.grid.voxel
     cells, vals = cell_corners(sparse)
+    # A learned UDF does not reach 0: it bottoms out at a floor (softplus output) and behaves like
+    # sqrt(d^2 + floor^2) near the surface. Undo that with the lowest sampled value, so the near-surface
+    # test and the vertex interpolation see distances; an exact UDF has floor 0 and is unchanged.
+    floor = float(sparse.values.min())
+    vals = np.sqrt(np.maximum(vals.astype(np.float64) ** 2 - floor**2, 0.0))
+    log.info("meshudf: UDF floor (lowest sampled value) %.4g = %.2f voxel", floor, floor / h)
+    if floor >= threshold:
+        raise _no_surface(f"the UDF never drops below threshold {threshold:.4g}", sparse, bounds)
     near = (vals.mean(1) < NEAR_MEAN_VOXELS * h) & (vals.max(1) <= NEAR_MAX_VOXELS * h)
     cells, vals = cells[near], vals[near]
     if len(cells) == 0:
@@ -477,22 +575,12 @@ def _meshudf(
         udf_fn, grid.position(grid.point_index(unique)), grad_fn=grad_fn, step=h / 4, chunk=chunk,
         device=device, progress=sub_progress(progress, 0.0, 0.7),
     )
-    g = grads[inverse.reshape(-1)].reshape(-1, 8, 3)
-    g = g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-12)
-    # the reference is the corner farthest from the surface: its gradient is the least affected by the cusp
-    ref = g[np.arange(len(g)), vals.argmax(1)]
-    sign = np.where(np.einsum("mkc,mc->mk", g, ref) >= 0, 1.0, -1.0)
+    sign, facing = pseudo_signs(vals, grads[inverse.reshape(-1)].reshape(-1, 8, 3), h)
     signed = sign * vals
-    # reject cells where a sign change is not backed by gradients pointing away from each other
-    facing = np.ones(len(cells), bool)
-    for a, b, ax in EDGES:
-        change = sign[:, a] != sign[:, b]
-        bad = (g[:, a, ax] > FACING_TOLERANCE) | (g[:, b, ax] < -FACING_TOLERANCE)
-        facing &= ~(change & bad)
     log.info(
         "meshudf: %d near-surface cells, %d rejected by the gradient test", len(cells), int((~facing).sum())
     )
-    vertices, faces, _ = marching_cubes(grid, cells[facing], signed[facing])
+    vertices, faces, _ = marching_cubes(grid, cells[facing], signed[facing], sign[facing] > 0)
     progress(0.8, "marching cubes")
     if len(faces) == 0:
         raise _no_surface("no pseudo-sign change in any near-surface cell", sparse, bounds)
@@ -531,20 +619,22 @@ def _spsr(
         u = evaluate_field(udf_fn, points, chunk=chunk, device=device)
         g = evaluate_gradient(udf_fn, points, grad_fn=grad_fn, step=h / 4, chunk=chunk, device=device,
                               progress=sub)
-        g = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
+        norm = np.linalg.norm(g, axis=1, keepdims=True)
+        g = g / np.maximum(norm, 1e-12)
         if normals is None:
             normals = g  # off-surface gradients are reliable; at the surface they flip (the cusp)
+            has_normal = norm[:, 0] > 1e-8  # a sample exactly on the surface has none
         points = points - u[:, None] * g
     u = evaluate_field(udf_fn, points, chunk=chunk, device=device)
-    on = u <= min(threshold, 0.25 * h)
+    on = (u <= min(threshold, 0.25 * h)) & has_normal
     points, normals = points[on], normals[on]
     log.info("spsr: %d points on the zero level set (udf <= %.3g)", len(points), min(threshold, 0.25 * h))
     if len(points) < 100:
         raise _no_surface(f"only {len(points)} points reached the zero level set", sparse, bounds)
+    # UDF gradients are unsigned: propagate one orientation over the neighbourhood graph
+    normals = orient_normals(points, normals)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pcd.normals = o3d.utility.Vector3dVector(normals.astype(np.float64))
-    # UDF gradients are unsigned: propagate one orientation over the neighbourhood graph
-    pcd.orient_normals_consistent_tangent_plane(16)
     pcd = pcd.voxel_down_sample(h / 2)
     pcd.normalize_normals()
     progress(0.6, "screened Poisson")

@@ -153,9 +153,9 @@ class Trainer:
         loss.backward()
         self.optimizer.step()
         self.step += 1
-        return {"loss": float(loss.detach()), "color_loss": float(color_loss), "eikonal": float(eik),
+        return {"loss": float(loss.detach()), "color_loss": float(color_loss.detach()), "eikonal": float(eik.detach()),
                 "psnr": losses.psnr(out["color"], batch["color"]), "sharpness": float(out["sharpness"]),
-                "weight_sum": float(out["weight_sum"].mean()), "lr": lr}
+                "weight_sum": float(out["weight_sum"].detach().mean()), "lr": lr}
 
     @staticmethod
     def _relaxed_sphere(batch: dict, out: dict) -> torch.Tensor:

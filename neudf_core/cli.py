@@ -1,0 +1,145 @@
+"""Command-line commands of the core: ``neudf train``, ``neudf mesh``, ``neudf eval``.
+
+The entry point (service/cli.py) builds one typer app from this module's :func:`register` and those of
+the worker and service layers. Every command turns bad input into a one-line reason on stderr and a
+non-zero exit code, never a traceback.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import sys
+from collections.abc import Iterator
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from neudf_core.progress import ProgressFn
+
+err_console = Console(stderr=True)
+
+
+class Device(str, Enum):
+    cpu = "cpu"
+    cuda = "cuda"
+
+
+class MeshMethod(str, Enum):
+    meshudf = "meshudf"
+    spsr = "spsr"
+    mc = "mc"
+
+
+def fail(message: str, code: int = 2) -> None:
+    """Print a one-line reason to stderr and exit non-zero."""
+    err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+@contextlib.contextmanager
+def progress_bar(description: str) -> Iterator[ProgressFn]:
+    """A rich progress bar driven by a :class:`ProgressFn`; the message and figures show beside it."""
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), TaskProgressColumn(),
+               TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
+    with Progress(*columns, console=err_console, transient=False) as bar:
+        task = bar.add_task(description, total=1.0, info="")
+
+        def report(fraction: float, message: str = "", **info: Any) -> None:
+            figures = " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                               for k, v in info.items() if k not in ("eta_s",))
+            bar.update(task, completed=min(max(fraction, 0.0), 1.0), info=f"{message} {figures}".strip())
+
+        yield report
+
+
+@contextlib.contextmanager
+def user_errors() -> Iterator[None]:
+    """Turn the errors a user can cause (bad paths, bad files, bad options) into a clean exit."""
+    try:
+        yield
+    except (ValueError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
+        fail(str(exc) or exc.__class__.__name__)
+    except KeyboardInterrupt:
+        fail("interrupted", code=130)
+
+
+def train_command(
+    data: Annotated[Path, typer.Argument(help="dataset folder in the NeuS layout (image/, cameras_sphere.npz)")],
+    out: Annotated[Path, typer.Option("--out", help="run folder: config.json, checkpoints/, metrics.jsonl, validation/")],
+    preset: Annotated[str, typer.Option(help="paper (the paper's settings, hours on a GPU), quick (CPU-sized)")] = "quick",
+    iters: Annotated[int | None, typer.Option(help="iterations (default: the preset's); schedule shrinks to fit")] = None,
+    device: Annotated[Device, typer.Option(help="cpu or cuda")] = Device.cpu,
+    masks: Annotated[bool, typer.Option("--masks/--no-masks", help="use mask/*.png (BCE loss, no background model)")] = False,
+    white_background: Annotated[bool, typer.Option(help="images have a plain white background (no NeRF++)")] = False,
+    weight: Annotated[str, typer.Option(help="rendering weight: neudf, neus_abs (naive baseline), neus_sdf")] = "neudf",
+) -> None:
+    """Train NeUDF on a dataset; resumes when OUT already holds a run with the same options."""
+    from neudf_core.trainer import train
+
+    overrides: dict[str, Any] = {"renderer": {"weight": weight}}
+    if masks:
+        overrides["data"] = {"use_masks": True}
+        overrides["loss"] = {"mask_weight": 0.1}
+    if white_background:
+        overrides.setdefault("data", {})["white_background"] = True
+    with user_errors(), progress_bar("training") as report:
+        result = train(data, out, preset=preset, iters=iters, device=device.value, progress=report,
+                       overrides=overrides)
+    typer.echo(json.dumps(result))
+
+
+def mesh_command(
+    run: Annotated[Path, typer.Argument(help="a run folder written by `neudf train`")],
+    out: Annotated[Path, typer.Option("--out", help="mesh file: .glb, .ply or .obj")],
+    method: Annotated[MeshMethod, typer.Option(help="meshudf (sheets, default), spsr (masked Poisson), mc (signed fields)")] = MeshMethod.meshudf,
+    resolution: Annotated[int, typer.Option(help="grid cells per axis over the unit sphere's box")] = 256,
+    threshold: Annotated[float | None, typer.Option(help="UDF value counted as surface (default: per method)")] = None,
+    device: Annotated[Device, typer.Option(help="cpu or cuda")] = Device.cpu,
+) -> None:
+    """Extract the open mesh with vertex colours from a trained run."""
+    from neudf_core.meshing import mesh_run
+
+    if resolution < 16 or resolution > 2048:
+        fail(f"--resolution must be between 16 and 2048, got {resolution}")
+    with user_errors(), progress_bar("meshing") as report:
+        mesh = mesh_run(run, out, method=method.value, resolution=resolution, threshold=threshold,
+                        device=device.value, progress=report)
+    typer.echo(json.dumps({"mesh": str(out), "vertices": len(mesh.vertices), "faces": len(mesh.faces)}))
+
+
+def eval_command(
+    pred: Annotated[Path, typer.Argument(help="predicted mesh")],
+    gt: Annotated[Path, typer.Argument(help="ground-truth mesh; both are moved into GT's unit sphere")],
+    as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
+) -> None:
+    """Compare two meshes: Chamfer distance, F-score, normal consistency, boundary loops."""
+    from neudf_core.metrics import evaluate_files
+
+    with user_errors():
+        result = evaluate_files(pred, gt)
+    if as_json:
+        typer.echo(json.dumps(result))
+        return
+    for key, value in result.items():
+        typer.echo(f"{key:>22}: {value:.6g}" if isinstance(value, float) else f"{key:>22}: {value}")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("train")(train_command)
+    app.command("mesh")(mesh_command)
+    app.command("eval")(eval_command)
+
+
+def main() -> None:  # pragma: no cover - the installed entry point is service.cli:main
+    app = typer.Typer(add_completion=False, no_args_is_help=True)
+    register(app)
+    app(prog_name="neudf")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
