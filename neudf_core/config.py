@@ -32,6 +32,15 @@ class FieldConfig(_Block):
     init_radius: float | None = Field(
         None, description="geometric init: None = the UDF of a point (unsigned) or a sphere of radius 0.5 (signed)")
     use_weight_norm: bool = True
+    encoding: Literal["frequency", "hashgrid"] = "frequency"
+    hash_levels: int = 16
+    hash_features: int = 2
+    hash_log2_table: int = 19
+    hash_base_res: int = 16
+    hash_max_res: int = 2048
+    gradient: Literal["autograd", "finite_difference"] = Field(
+        "autograd", description="grad Psi by double backward (exact) or central differences (no 2nd-order graph)")
+    fd_eps: float = Field(1e-3, description="finite-difference step; about a cell of the finest hash level")
 
 
 class ColorConfig(_Block):
@@ -75,12 +84,16 @@ class SamplerConfig(_Block):
 
 class LossConfig(_Block):
     eikonal_weight: float = 0.1
+    eikonal_min_udf: float = Field(0.0, description="skip eikonal samples with Psi below this (FD gradients "
+                                   "collapse on the cusp)")
     mask_weight: float = 0.0
     normal_smooth_weight: float = Field(0.0, description="authors' code: sign-agnostic consecutive-normal term")
 
 
 class OptimConfig(_Block):
     lr: float = 2e-4
+    lr_encoding: float | None = Field(None, description="learning rate of hash-grid tables (default: lr)")
+    amp: bool = Field(False, description="bf16 autocast on CUDA (ignored on CPU)")
     lr_end_factor: float = 0.05
     warmup_iters: int = 5_000
     iters: int = 400_000

@@ -32,6 +32,51 @@ class PositionalEncoding(nn.Module):
         return torch.cat([x, enc], dim=-1)
 
 
+class HashGridEncoding(nn.Module):
+    """Multiresolution hash encoding (Mueller et al., Instant NGP), in plain PyTorch.
+
+    Level l has resolution floor(base * b^l) cells per axis over [-bound, bound]^3; coarse levels whose
+    grid fits in the table are stored densely, finer ones hashed with the Instant-NGP primes. Features
+    of the 8 cell corners are blended trilinearly. Output: (N, 3 + n_levels * n_features), the raw
+    point first so a geometric initialisation of the next layer still applies.
+    """
+
+    _PRIMES = (1, 2654435761, 805459861)
+
+    def __init__(self, n_levels: int = 16, n_features: int = 2, log2_table: int = 19, base_res: int = 16,
+                 max_res: int = 2048, bound: float = 1.0):
+        super().__init__()
+        growth = math.exp((math.log(max_res) - math.log(base_res)) / max(n_levels - 1, 1))
+        res = [int(math.floor(base_res * growth**level)) for level in range(n_levels)]
+        size = 2**log2_table
+        self.bound, self.table_size, self.n_features = bound, size, n_features
+        self.register_buffer("res", torch.tensor(res, dtype=torch.long), persistent=False)
+        self.register_buffer("dense", torch.tensor([(r + 1) ** 3 <= size for r in res]), persistent=False)
+        self.register_buffer("offsets", torch.arange(n_levels, dtype=torch.long) * size, persistent=False)
+        corners = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=torch.long)
+        self.register_buffer("corners", corners, persistent=False)
+        self.register_buffer("primes", torch.tensor(self._PRIMES, dtype=torch.long), persistent=False)
+        # Small initial features: the field starts as what the MLP makes of the raw point alone.
+        self.table = nn.Parameter(torch.empty(n_levels * size, n_features).uniform_(-1e-4, 1e-4))
+        self.d_out = 3 + n_levels * n_features
+
+    def forward(self, x: Tensor) -> Tensor:
+        u = ((x + self.bound) / (2 * self.bound)).clamp(0.0, 1.0)
+        pos = u[:, None, :] * self.res[None, :, None].float()  # (N, L, 3)
+        cell = pos.floor().long().clamp_max(self.res[None, :, None] - 1)
+        frac = pos - cell.float()
+        corner = cell[:, :, None, :] + self.corners[None, None]  # (N, L, 8, 3)
+        stride = (self.res + 1)[None, :, None]
+        dense_idx = corner[..., 0] + corner[..., 1] * stride + corner[..., 2] * stride * stride
+        hashed = corner * self.primes
+        hash_idx = (hashed[..., 0] ^ hashed[..., 1] ^ hashed[..., 2]) % self.table_size
+        idx = torch.where(self.dense[None, :, None], dense_idx, hash_idx) + self.offsets[None, :, None]
+        feats = self.table[idx]  # (N, L, 8, F)
+        w = torch.where(self.corners[None, None].bool(), frac[:, :, None, :], 1.0 - frac[:, :, None, :]).prod(-1)
+        out = (w[..., None] * feats).sum(2).flatten(1)
+        return torch.cat([x, out], dim=-1)
+
+
 def _linear(d_in: int, d_out: int, use_weight_norm: bool) -> nn.Linear:
     layer = nn.Linear(d_in, d_out)
     return _weight_norm(layer) if use_weight_norm else layer
@@ -57,9 +102,10 @@ class UDFNetwork(nn.Module):
         use_weight_norm: bool = True,
         softplus_beta: float = 100.0,
         signed: bool = False,
+        encoding: nn.Module | None = None,
     ):
         super().__init__()
-        self.encoding = PositionalEncoding(n_freqs)
+        self.encoding = encoding if encoding is not None else PositionalEncoding(n_freqs)
         self.signed = signed
         self.skip_in = set(skip_in)
         self.d_feature = d_feature

@@ -94,11 +94,21 @@ class Trainer:
         self.data, self.run_dir, self.cfg, self.device = data.to(device), run_dir, cfg, device
         torch.manual_seed(cfg.seed)
         self.model = NeUDFModel(cfg).to(device)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.optim.lr)
+        self.optimizer = torch.optim.Adam(self._param_groups(), lr=cfg.optim.lr)
         self.step = 0
         self.generator = torch.Generator().manual_seed(cfg.seed)
         bg = 1.0 if cfg.data.white_background else 0.0
         self.bg_color = torch.full((1, 3), bg, device=device)
+
+    def _param_groups(self) -> list[dict]:
+        """Hash tables learn with their own rate (Instant NGP uses a far larger one than for MLPs)."""
+        tables = [p for n, p in self.model.named_parameters() if n.endswith("encoding.table")]
+        others = [p for n, p in self.model.named_parameters() if not n.endswith("encoding.table")]
+        groups = [{"params": others, "lr_scale": 1.0}]
+        if tables:
+            scale = (self.cfg.optim.lr_encoding or self.cfg.optim.lr) / self.cfg.optim.lr
+            groups.append({"params": tables, "lr_scale": scale, "eps": 1e-15})
+        return groups
 
     # -- persistence --------------------------------------------------------------------------------
     def save(self) -> Path:
@@ -139,11 +149,17 @@ class Trainer:
         cfg = self.cfg
         lr = learning_rate(self.step, cfg.optim)
         for group in self.optimizer.param_groups:
-            group["lr"] = lr
+            group["lr"] = lr * group["lr_scale"]
         batch = self.data.sample_rays(cfg.optim.rays, cfg.optim.images_per_batch, self.generator)
-        out = self.model.render(batch["rays_o"], batch["rays_d"], self.render_state(True), self.bg_color)
+        amp = cfg.optim.amp and self.device.startswith("cuda")
+        with torch.autocast("cuda" if amp else "cpu", dtype=torch.bfloat16, enabled=amp):
+            out = self.model.render(batch["rays_o"], batch["rays_d"], self.render_state(True), self.bg_color)
+        out["color"] = out["color"].float()
         color_loss = losses.color_l1(out["color"], batch["color"])
-        eik = losses.eikonal(out["gradients"], self._relaxed_sphere(batch, out))
+        eik_valid = self._relaxed_sphere(batch, out)
+        if cfg.loss.eikonal_min_udf > 0:
+            eik_valid = eik_valid * (out["psi"].detach() > cfg.loss.eikonal_min_udf).float()
+        eik = losses.eikonal(out["gradients"], eik_valid)
         loss = color_loss + cfg.loss.eikonal_weight * eik
         if cfg.loss.mask_weight > 0 and "mask" in batch:
             loss = loss + cfg.loss.mask_weight * losses.mask_bce(out["weight_sum"], batch["mask"])

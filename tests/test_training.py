@@ -158,3 +158,16 @@ def test_help_explains_every_option():
     assert result.exit_code == 0
     for option in ("--out", "--preset", "--iters", "--device"):
         assert option in result.output
+
+
+def test_fast_preset_learns_the_scene(sheet_scene, tmp_path):
+    run = tmp_path / "run"
+    overrides = {"data": {"white_background": True}, "log": {"log_every": 10},
+                 "optim": {"rays": 128}, "sampler": {"n_coarse": 24, "n_importance": 16}}
+    train(sheet_scene, run, preset="fast", iters=120, overrides=overrides)
+    rows = _metrics(run)
+    last = np.mean([r["psnr"] for r in rows[-2:]])
+    assert rows[-1]["loss"] < 0.7 * rows[0]["loss"]
+    assert last > rows[0]["psnr"] + 3.0, (rows[0]["psnr"], last)
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["field"]["encoding"] == "hashgrid" and cfg["field"]["gradient"] == "finite_difference"
