@@ -136,8 +136,10 @@ _UPLOAD_BODY = {
                 "frames": {"type": "integer", "description": "Frames to pick from the video"},
                 "iters": {"type": "integer", "description": "Training iterations"},
                 "max_size": {"type": "integer", "description": "Longest side of frames given to SIFT"},
-                "mesh_method": {"type": "string", "description": "spsr or meshudf"},
+                "mesh_method": {"type": "string", "description": "meshudf, spsr or mc"},
                 "mesh_resolution": {"type": "integer", "description": "Grid resolution of mesh extraction"},
+                "mesh_threshold": {"type": "number", "description": "UDF level under which a face counts as surface"},
+                "mesh_min_faces": {"type": "integer", "description": "Smaller connected pieces are dropped (default 32)"},
             },
         }}},
     }

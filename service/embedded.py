@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 from service.settings import Settings
 
@@ -32,6 +33,9 @@ def settings_env(settings: Settings) -> dict[str, str]:
             env[key] = str(value)
     env["NEUDF_DATA_DIR"] = str(settings.root)
     env["NEUDF_EMBEDDED_WORKER"] = "false"
+    # The child must import this very code base, whichever way it was installed (or not).
+    root = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
     return env
 
 

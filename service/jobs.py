@@ -13,7 +13,6 @@ import re
 import shutil
 import time
 import uuid
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +23,9 @@ import neudf_core
 from service.models import BrokerHealth, Health, JobPublic, WorkerHealth
 from service.settings import Settings
 from worker.celery_app import broker_reachable, create_celery, enqueue_job
+from worker.errors import StageError
 from worker.pipeline import STAGE_NAMES, JobOptions, artifact_files
+from worker.stages.frames import VideoInfo, VideoLimits, probe_video
 from worker.store import JobRecord, JobStore
 
 log = logging.getLogger("neudf.service")
@@ -42,29 +43,16 @@ class JobRejected(Exception):
         self.status, self.detail = status, detail
 
 
-@dataclass
-class VideoInfo:
-    width: int
-    height: int
-    frames: int
-    seconds: float
-    codec: str
-
-
 def probe_upload(path: Path, settings: Settings) -> VideoInfo:
-    """Check that ``path`` is a video we can work on; JobRejected(415/422) saying why not."""
-    from worker.errors import StageError
-    from worker.stages.frames import VideoLimits, probe_video
-
+    """Check that ``path`` is a video the pipeline can use; JobRejected saying why not (415: not a video)."""
     limits = VideoLimits(max_seconds=settings.video_max_seconds, min_frames=settings.video_min_frames,
                          max_pixels=settings.video_max_pixels)
     try:
-        info = probe_video(path, limits)
+        return probe_video(path, limits)
     except StageError as exc:
-        status = 415 if getattr(exc, "kind", "") == "not_video" else 422
-        raise JobRejected(status, str(exc.message)) from exc
-    return VideoInfo(width=info.width, height=info.height, frames=info.frames, seconds=info.seconds,
-                     codec=info.codec)
+        raise JobRejected(415 if exc.kind == "not_video" else 422, exc.message) from None
+    except Exception as exc:  # a decoder error the probe did not name: still the file's fault
+        raise JobRejected(415, f"the file could not be read as a video ({type(exc).__name__})") from None
 
 
 class JobService:

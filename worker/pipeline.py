@@ -51,8 +51,12 @@ class JobOptions(BaseModel):
     frames: int | None = Field(None, ge=8, le=2000, description="Frames to pick from the video.")
     iters: int | None = Field(None, ge=1, le=2_000_000, description="Training iterations (default: the preset's).")
     max_size: int | None = Field(None, ge=64, le=8192, description="Longest side of the frames given to SIFT.")
-    mesh_method: Literal["spsr", "meshudf"] | None = Field(None, description="Open-surface extraction method.")
+    mesh_method: Literal["meshudf", "spsr", "mc"] | None = Field(None, description="Open-surface extraction method.")
     mesh_resolution: int | None = Field(None, ge=16, le=2048, description="Grid resolution of mesh extraction.")
+    mesh_threshold: float | None = Field(None, gt=0, le=1, description="UDF level (unit-sphere units) under which "
+                                         "a face counts as surface; default about a voxel.")
+    mesh_min_faces: int | None = Field(None, ge=1, le=1_000_000, description="Connected pieces with fewer faces are "
+                                       "dropped as noise (default 32).")
 
     @field_validator("preset")
     @classmethod
@@ -108,8 +112,9 @@ def _frames(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
 def _poses(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
     from worker.stages.poses import estimate_poses
 
-    estimate_poses(ctx.data_dir, progress=progress)
-    return {}
+    figures = estimate_poses(ctx.data_dir, progress=progress)
+    keep = ("frames_total", "frames_registered", "reprojection_error_px", "points", "warnings")
+    return {k: figures[k] for k in keep if k in figures} if isinstance(figures, dict) else {}
 
 
 def _scene(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
@@ -133,16 +138,51 @@ def _train(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
 
 
 def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
-    from neudf_core.export import mesh_run
+    from neudf_core.meshing import mesh_run
 
     kwargs: dict[str, Any] = {}
     if ctx.options.mesh_method is not None:
         kwargs["method"] = ctx.options.mesh_method
     if ctx.options.mesh_resolution is not None:
         kwargs["resolution"] = ctx.options.mesh_resolution
+    if ctx.options.mesh_threshold is not None:
+        kwargs["threshold"] = ctx.options.mesh_threshold
     ctx.mesh_file.parent.mkdir(parents=True, exist_ok=True)
-    result = mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress, **kwargs)
-    return {f"mesh_{k}": v for k, v in result.items() if isinstance(v, int | float | str)} if isinstance(result, dict) else {}
+    try:
+        if ctx.options.mesh_min_faces is None:
+            mesh = mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress, **kwargs)
+        else:
+            mesh = _mesh_keeping_small_pieces(ctx, ctx.options.mesh_min_faces, progress, **kwargs)
+    except ValueError as exc:  # no surface found: say what the user can change
+        raise StageError("mesh", f"{exc}. Train longer (more iterations) or raise mesh_threshold.") from exc
+    info = mesh.metadata.get("meshing", {})
+    return {f"mesh_{k}": info[k] for k in ("method", "resolution", "threshold") if k in info}
+
+
+def _mesh_keeping_small_pieces(ctx: JobContext, min_faces: int, progress: ProgressFn, **kwargs: Any) -> Any:
+    """``mesh_run`` with its small-piece filter set. TEMPORARY: composed from neudf_core.meshing's public
+    functions until ``mesh_run`` takes ``min_component_faces`` itself (asked of its owner)."""
+    import inspect
+
+    from neudf_core.meshing import color_vertices, extract_mesh, mesh_run
+
+    if "min_component_faces" in inspect.signature(mesh_run).parameters:
+        return mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress,
+                        min_component_faces=min_faces, **kwargs)
+    from neudf_core.export import export_mesh
+    from neudf_core.trainer import load_model
+
+    model = load_model(ctx.run_dir, ctx.device)
+    model.eval()
+
+    def grad_fn(x: Any) -> Any:
+        return model.udf_and_grad(x)[1]
+
+    mesh = extract_mesh(model.udf, grad_fn=grad_fn, device=ctx.device, min_component_faces=min_faces,
+                        min_component_fraction=0.0, progress=sub_progress(progress, 0.0, 0.9), **kwargs)
+    color_vertices(mesh, model.color, device=ctx.device, progress=sub_progress(progress, 0.9, 0.98))
+    export_mesh(mesh, ctx.mesh_file)
+    return mesh
 
 
 def _export(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
@@ -163,7 +203,7 @@ class Stage:
 
 STAGES: tuple[Stage, ...] = (
     Stage("frames", 0.04, _frames, lambda c: [c.data_dir / "image", c.data_dir / "frames.json"]),
-    Stage("poses", 0.16, _poses, lambda c: [c.data_dir]),
+    Stage("poses", 0.16, _poses, lambda c: [c.data_dir / "colmap" / "poses.json"]),
     Stage("scene", 0.02, _scene, lambda c: [c.data_dir / "cameras_sphere.npz"]),
     Stage("train", 0.65, _train, lambda c: [c.run_dir / "config.json", c.run_dir / "metrics.jsonl"],
           owns=lambda c: [c.run_dir]),

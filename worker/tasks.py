@@ -26,8 +26,7 @@ from celery.exceptions import SoftTimeLimitExceeded
 
 from neudf_core.progress import Cancelled
 from worker.celery_app import TASK_RUN_JOB, NeudfCelery, QueueSettings, enqueue_job
-from worker.errors import StageError
-from worker.pipeline import JobOptions, artifact_files, run_pipeline
+from worker.pipeline import JobOptions, StageError, artifact_files, run_pipeline
 from worker.store import JobRecord, JobStore, StageRecord, utcnow
 
 log = logging.getLogger("neudf.worker")
@@ -189,6 +188,7 @@ class WorkerMonitor:
         self.app, self.nodename = app, nodename
         self.settings = app.neudf_settings
         self._stop = threading.Event()
+        self._ticks = 0
         self._thread = threading.Thread(target=self._loop, name="neudf-monitor", daemon=True)
 
     def start(self) -> None:
@@ -207,8 +207,22 @@ class WorkerMonitor:
         except Exception:  # shutting down: the row just ages out
             log.debug("could not remove worker row", exc_info=True)
 
+    def prune_processed(self, older_than_s: float = 86400) -> None:
+        """The embedded broker keeps consumed messages (inside DATA_DIR); a day of them is plenty."""
+        folder = self.settings.broker_folders["processed"]
+        now = time.time()
+        for path in folder.glob("*.msg") if folder.is_dir() else []:
+            try:
+                if now - path.stat().st_mtime > older_than_s:
+                    path.unlink()
+            except OSError:
+                continue
+
     def tick(self) -> None:
         store = get_store(self.settings)
+        self._ticks += 1
+        if self.settings.embedded_broker and self._ticks % 600 == 1:
+            self.prune_processed()
         store.worker_beat(self.nodename, socket.gethostname(), os.getpid(), self.settings.device)
         for job_id in _active_job_ids():
             store.heartbeat(job_id, None)
@@ -221,6 +235,23 @@ class WorkerMonitor:
             except Exception:  # a database hiccup must not kill the monitor
                 log.exception("worker monitor tick failed")
             self._stop.wait(self.settings.heartbeat_s)
+
+
+# Imported once in the worker's main process, so each job's fresh pool process is forked with them
+# loaded instead of spending seconds importing torch and friends. Importing torch does not start CUDA, so
+# forking after it is safe; the device is picked inside the job's process.
+PRELOAD = ("torch", "neudf_core.trainer", "neudf_core.meshing", "worker.stages.frames", "worker.stages.poses",
+           "worker.stages.scene", "worker.stages.export")
+
+
+def preload_modules() -> None:
+    import importlib
+
+    for name in PRELOAD:
+        try:
+            importlib.import_module(name)
+        except Exception:  # a broken stage module shows up as that stage's error, with its job
+            log.warning("could not preload %s", name, exc_info=True)
 
 
 def register_tasks(app: NeudfCelery) -> None:
@@ -239,13 +270,18 @@ def register_tasks(app: NeudfCelery) -> None:
         monitors["main"] = WorkerMonitor(app, sender.hostname)
         monitors["main"].start()
 
+    def on_init(sender: Any = None, **_: Any) -> None:
+        if getattr(sender, "app", None) is app:
+            preload_modules()
+
     def on_shutdown(sender: Any = None, **_: Any) -> None:
         monitor = monitors.pop("main", None)
         if monitor is not None:
             monitor.stop()
 
     # weak=False: the handlers are closures that would otherwise be collected at once.
+    signals.worker_init.connect(on_init, weak=False)
     signals.worker_ready.connect(on_ready, weak=False)
     signals.worker_shutdown.connect(on_shutdown, weak=False)
-    app._neudf_signal_handlers = (on_ready, on_shutdown)  # type: ignore[attr-defined]
+    app._neudf_signal_handlers = (on_init, on_ready, on_shutdown)  # type: ignore[attr-defined]
 

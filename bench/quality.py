@@ -1,0 +1,171 @@
+"""Benchmark: NeUDF against naive NeuS-on-|f| and NeuS-SDF on open garments, at the same budget.
+
+For each ground-truth mesh (../shared/data/meshes by default: tshirt.obj and pants.obj with their
+textures, diffavatar_*.obj with the renderer's procedural texture) it renders a synthetic NeuS-layout
+scene, trains the three rendering weights with the same preset, iterations and overrides, meshes each
+(meshudf for the two unsigned fields, marching cubes at level 0 for NeuS-SDF) and compares the mesh with
+the ground truth in GT's unit sphere (neudf_core.metrics.evaluate). Prints one table and writes JSON
+under bench/results/.
+
+    .venv/bin/python bench/quality.py --preset quick --iters 1000            # CPU, hours for all meshes
+    .venv/bin/python bench/quality.py --preset fast --device cuda --views 64 --size 256
+    .venv/bin/python bench/quality.py --meshes diffavatar_tshirt --iters 5   # a smoke run
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+import trimesh
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from neudf_core import synthetic  # noqa: E402
+from neudf_core.meshing import mesh_run  # noqa: E402
+from neudf_core.metrics import boundary_loops, evaluate  # noqa: E402
+from neudf_core.trainer import train  # noqa: E402
+
+MESH_DIR = ROOT.parent / "shared" / "data" / "meshes"
+# weight -> (label, meshing method): NeuS on |f| learns an unsigned field, so it is meshed like NeUDF
+METHODS = {"neudf": ("NeUDF", "meshudf"), "neus_abs": ("NeuS |f|", "meshudf"), "neus_sdf": ("NeuS-SDF", "mc")}
+
+
+def find_meshes(names: list[str] | None) -> list[Path]:
+    """The GT meshes: names (with or without .obj) in MESH_DIR, or paths; all .obj files by default."""
+    if not names:
+        found = sorted(MESH_DIR.glob("*.obj"))
+        if not found:
+            raise SystemExit(f"no meshes in {MESH_DIR}; pass --meshes PATH ...")
+        return found
+    paths = []
+    for name in names:
+        path = Path(name)
+        if not path.is_file():
+            path = MESH_DIR / (name if name.endswith(".obj") else f"{name}.obj")
+        if not path.is_file():
+            raise SystemExit(f"mesh not found: {name} (looked in {MESH_DIR})")
+        paths.append(path)
+    return paths
+
+
+def run_one(data: Path, run_dir: Path, weight: str, args: argparse.Namespace, gt: trimesh.Trimesh) -> dict[str, Any]:
+    """Train one rendering weight, mesh it and evaluate it. Failures are recorded, not raised."""
+    label, method = METHODS[weight]
+    overrides: dict[str, Any] = {"renderer": {"weight": weight}}
+    if args.background == "white":
+        overrides["data"] = {"white_background": True}
+    row: dict[str, Any] = {"weight": weight, "label": label, "mesh_method": method,
+                           "boundary_loops_gt": boundary_loops(gt)}
+    t0 = time.perf_counter()
+    result = train(data, run_dir, preset=args.preset, iters=args.iters, device=args.device, overrides=overrides)
+    row.update(train_s=round(time.perf_counter() - t0, 1), iters=result["iters"], psnr=result.get("psnr"))
+    t1 = time.perf_counter()
+    try:
+        pred = mesh_run(run_dir, run_dir / "mesh.ply", method=method, resolution=args.resolution, device=args.device)
+    except ValueError as exc:  # e.g. no surface yet after a tiny budget: a result, not a crash
+        row.update(error=str(exc), chamfer=None, fscore=None, boundary_loops_pred=None)
+        return row
+    row["mesh_s"] = round(time.perf_counter() - t1, 1)
+    metrics = evaluate(pred, gt, n_samples=args.samples)
+    row.update(metrics)
+    row.update(faces=len(pred.faces), mesh_threshold=pred.metadata.get("meshing", {}).get("threshold"))
+    return row
+
+
+def print_table(rows: list[dict[str, Any]], weights: list[str]) -> None:
+    labels = [METHODS[w][0] for w in weights]
+    head = f"{'mesh':<22}{'GT loops':>9}  " + "".join(f"{lab:>28}" for lab in labels)
+    sub = f"{'':<22}{'':>9}  " + "".join(f"{'CD x1e-3   F   loops':>28}" for _ in labels)
+    print(head)
+    print(sub)
+    for mesh in dict.fromkeys(r["mesh"] for r in rows):
+        cells = []
+        gt_loops = next(r["boundary_loops_gt"] for r in rows if r["mesh"] == mesh)
+        for w in weights:
+            r = next((r for r in rows if r["mesh"] == mesh and r["weight"] == w), None)
+            if r is None or r.get("error"):
+                cells.append(f"{'no surface' if r else '-':>28}")
+                continue
+            cells.append(f"{r['chamfer'] * 1e3:>14.2f}{r['fscore']:>7.3f}{r['boundary_loops_pred']:>7}")
+        print(f"{mesh:<22}{gt_loops!s:>9}  " + "".join(cells))
+    for w, lab in zip(weights, labels):
+        values = [r["chamfer"] for r in rows if r["weight"] == w and not r.get("error")]
+        if values:
+            print(f"mean Chamfer {lab}: {sum(values) / len(values) * 1e3:.2f} x1e-3 over {len(values)} meshes")
+
+
+def _json_safe(value: Any) -> Any:
+    """NaN and infinities as null: strict JSON readers refuse them."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--preset", default="quick", help="quick (CPU), fast or paper (GPU)")
+    ap.add_argument("--iters", type=int, default=None, help="iterations per method (default: the preset's)")
+    ap.add_argument("--meshes", nargs="*", default=None, help="names in ../shared/data/meshes or paths (default: all)")
+    ap.add_argument("--views", type=int, default=48, help="rendered views per scene")
+    ap.add_argument("--size", type=int, default=96, help="image size in pixels")
+    ap.add_argument("--background", choices=["white", "env"], default="white",
+                    help="white: plain background (trained with white_background); env: NeRF++ background")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--resolution", type=int, default=256, help="meshing grid (cells over the unit box)")
+    ap.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh for the metrics")
+    ap.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
+    ap.add_argument("--work-dir", type=Path, default=None, help="keep datasets and runs here (default: temporary)")
+    ap.add_argument("--out", type=Path, default=None, help="JSON file (default: bench/results/quality_<preset>.json)")
+    args = ap.parse_args()
+
+    meshes = find_meshes(args.meshes)
+    work = args.work_dir or Path(tempfile.mkdtemp(prefix="neudf-quality-"))
+    rows: list[dict[str, Any]] = []
+    started = time.time()
+    try:
+        for path in meshes:
+            source = trimesh.load(path, process=False, force="mesh")
+            data = synthetic.write_neus_dataset(work / path.stem / "data", source, n_views=args.views,
+                                                size=args.size, background=args.background)
+            gt = trimesh.load(data / "mesh_gt.ply", process=False)
+            for weight in args.methods:
+                print(f"[{time.time() - started:7.0f}s] {path.stem}: {METHODS[weight][0]}", flush=True)
+                row = run_one(data, work / path.stem / weight, weight, args, gt)
+                rows.append({"mesh": path.stem, **row})
+    finally:
+        if args.work_dir is None:
+            shutil.rmtree(work, ignore_errors=True)
+
+    print()
+    print_table(rows, args.methods)
+    out = args.out or ROOT / "bench" / "results" / f"quality_{args.preset}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    report = {
+        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "machine": {"device": args.device, "torch": torch.__version__, "threads": torch.get_num_threads(),
+                    "cpu": platform.processor() or platform.machine(),
+                    "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None},
+        "seconds": round(time.time() - started, 1),
+        "rows": rows,
+    }
+    out.write_text(json.dumps(_json_safe(report), indent=2, default=str))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,201 @@
+"""Shared fixtures for the service tests: a tiny synthetic video, real servers and workers as processes.
+
+Nothing here is mocked: `neudf serve` and `neudf worker` run as child processes (each in its own process
+group, so a test can SIGKILL a whole worker), the broker is the embedded filesystem one or the real Redis
+at 127.0.0.1:6379 (database 13 only, flushed before and after), the store is SQLite or PostgreSQL.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+REDIS_URL = "redis://127.0.0.1:6379/13"  # a database of its own: the tests flush only this one
+POSTGRES_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
+ARTIFACTS = Path(__file__).parent / "artifacts"
+
+# Options that keep a whole job to seconds on 2 CPU cores. Ten iterations of the quick preset leave the
+# UDF's minimum around 0.1 (unit sphere), above the default meshing threshold of about a voxel, and what
+# meshes is a few dozen faces near that minimum: hence the explicit threshold and no small-piece filter.
+# (A real surface needs hundreds of iterations; these tests check the plumbing, not the quality.)
+QUICK_JOB = {"preset": "quick", "iters": "10", "frames": "30", "mesh_resolution": "64", "mesh_threshold": "0.25",
+             "mesh_min_faces": "1"}
+# Fast liveness: a killed worker's job is queued again after a few seconds.
+FAST_LIVENESS = {"NEUDF_HEARTBEAT_S": "1", "NEUDF_STALE_AFTER_S": "5", "NEUDF_PROGRESS_INTERVAL_S": "0.2"}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def neudf_env(data_dir: Path, **extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NEUDF_")}
+    env.update(FAST_LIVENESS)
+    env.update({"NEUDF_DATA_DIR": str(data_dir), "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "2"})
+    env.update(extra)
+    return env
+
+
+def _stop_group(process: subprocess.Popen, sig: int = signal.SIGTERM, wait_s: float = 20) -> None:
+    if process.poll() is None:
+        try:
+            os.killpg(process.pid, sig)
+            process.wait(wait_s)
+        except (ProcessLookupError, subprocess.TimeoutExpired):
+            pass
+    try:
+        os.killpg(process.pid, signal.SIGKILL)  # pool children that outlived their parent
+    except ProcessLookupError:
+        pass
+
+
+class WorkerProcess:
+    """`neudf worker` as a child process group."""
+
+    def __init__(self, env: dict[str, str], log: Path) -> None:
+        self.log = log
+        with open(log, "ab") as fh:
+            self.process = subprocess.Popen([sys.executable, "-m", "service.cli", "worker"], cwd=ROOT, env=env,
+                                            stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+
+    def kill(self) -> None:
+        """SIGKILL the worker and its pool process at once, as a crashed machine would."""
+        os.killpg(self.process.pid, signal.SIGKILL)
+        self.process.wait(10)
+
+    def stop(self) -> None:
+        _stop_group(self.process)
+
+
+class ServeProcess:
+    """`neudf serve` (API + page + embedded worker) as a child process group."""
+
+    def __init__(self, data_dir: Path, log: Path, **env: str) -> None:
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.data_dir = data_dir
+        with open(log, "ab") as fh:
+            self.process = subprocess.Popen(
+                [sys.executable, "-m", "service.cli", "serve", "--port", str(self.port), "--data-dir", str(data_dir)],
+                cwd=ROOT, env=neudf_env(data_dir, **env), stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+        self.log = log
+
+    def wait_ready(self, timeout_s: float = 120) -> None:
+        """Until the API answers and the embedded worker has reported in."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"neudf serve exited: {self.log.read_text()[-3000:]}")
+            try:
+                health = httpx.get(f"{self.url}/api/health", timeout=5).json()
+                if health["workers_alive"] >= 1:
+                    return
+            except (httpx.HTTPError, ValueError, KeyError):
+                pass
+            time.sleep(0.5)
+        raise TimeoutError(f"neudf serve not ready: {self.log.read_text()[-3000:]}")
+
+    def stop(self) -> None:
+        _stop_group(self.process)
+
+
+@pytest.fixture(scope="session")
+def tiny_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """30 frames at 240x180: a walk-around of a textured wavy sheet inside a textured backdrop sphere.
+
+    The capture tests' scene (the backdrop gives SIFT texture with parallax, as a room does), rendered
+    without supersampling to keep it to seconds; at this size pycolmap poses all 30 frames, while 160x120
+    leaves most of them unregistered.
+    """
+    from neudf_core.synthetic import orbit_cameras
+    from tests.test_capture import ORBIT_RADIUS, backdrop_sphere, encode_video, render_scene, textured_sheet
+
+    cameras = orbit_cameras(30, ORBIT_RADIUS, width=240, height=180, fov_deg=50.0)
+    images = render_scene(textured_sheet(), backdrop_sphere(rings=32), cameras, supersample=1)
+    path = tmp_path_factory.mktemp("video") / "orbit.mp4"
+    encode_video(path, images)
+    return path
+
+
+@pytest.fixture(scope="session")
+def embedded_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServeProcess]:
+    """One `neudf serve` with the embedded defaults (filesystem broker, SQLite), shared by the tests."""
+    data = tmp_path_factory.mktemp("serve")
+    server = ServeProcess(data / "data", data / "serve.log")
+    try:
+        server.wait_ready()
+        yield server
+    finally:
+        server.stop()
+
+
+@pytest.fixture
+def redis_db() -> Iterator[str]:
+    """The Redis URL of the tests' own database, flushed before and after; skip when Redis is down."""
+    import redis
+
+    client = redis.Redis.from_url(REDIS_URL, socket_connect_timeout=2)
+    try:
+        client.ping()
+    except redis.ConnectionError:
+        pytest.skip("no Redis server at 127.0.0.1:6379")
+    client.flushdb()
+    yield REDIS_URL
+    client.flushdb()
+    client.close()
+
+
+def wait_job(get: Callable[[], dict[str, Any]], until: Callable[[dict[str, Any]], bool], timeout_s: float = 300,
+             poll_s: float = 0.25) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Poll a job until ``until(job)``; returns the last job and every snapshot seen."""
+    seen: list[dict[str, Any]] = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        job = get()
+        seen.append(job)
+        if until(job):
+            return job, seen
+        time.sleep(poll_s)
+    raise TimeoutError(f"job never reached the condition; last: {seen[-1] if seen else None}")
+
+
+def finished(job: dict[str, Any]) -> bool:
+    return job["state"] in ("succeeded", "failed", "cancelled")
+
+
+def assert_monotonic_progress(snapshots: list[dict[str, Any]], stage_names: list[str]) -> None:
+    """Overall progress never goes back, and the current stage only moves forward through the stages."""
+    values = [s["progress"] for s in snapshots]
+    assert all(b >= a for a, b in zip(values, values[1:])), f"progress went back: {values}"
+    order = [stage_names.index(s["stage"]) for s in snapshots if s["stage"] is not None]
+    assert all(b >= a for a, b in zip(order, order[1:])), f"stages went back: {order}"
+    for s in snapshots:  # per stage too
+        for stage in s["stages"]:
+            assert 0.0 <= stage["progress"] <= 1.0
+    assert len(set(values)) >= 3, f"progress hardly moved: {sorted(set(values))}"
+
+
+def assert_valid_glb(data: bytes) -> Any:
+    """A GLB trimesh reads back as a mesh with faces and vertex colours."""
+    import io
+
+    import trimesh
+
+    assert data[:4] == b"glTF", "not a binary glTF"
+    scene = trimesh.load(io.BytesIO(data), file_type="glb", process=False)
+    mesh = scene.to_mesh() if hasattr(scene, "to_mesh") else scene
+    assert len(mesh.faces) > 0
+    return mesh

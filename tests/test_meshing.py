@@ -1,0 +1,275 @@
+"""Meshing distance fields: analytic UDFs of open surfaces (written here, in torch), export, a trained run.
+
+The analytic shapes (world units, all in the unit box):
+- a 1.2 x 1.2 square sheet with a round hole of radius 0.2 (2 boundary loops),
+- a hemisphere bowl of radius 0.5, open at the top (1 loop),
+- two parallel 1.2 x 1.2 sheets 0.5 apart (2 loops).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from neudf_core.export import export_mesh
+from neudf_core.meshing import color_vertices, extract_mesh, mesh_run
+from neudf_core.metrics import boundary_loops
+
+RES = 128
+HALF, HOLE, BOWL_R, GAP = 0.6, 0.2, 0.5, 0.25
+Y0 = 0.01  # off the grid planes; a test below puts a sheet exactly on one
+
+
+def _hypot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return torch.sqrt(a * a + b * b + 1e-20)  # differentiable at 0 (torch.hypot's gradient is NaN there)
+
+
+def _square(x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """Distance in the plane to the square [-HALF, HALF]^2."""
+    return _hypot((x.abs() - HALF).clamp(min=0), (z.abs() - HALF).clamp(min=0))
+
+
+def sheet_with_hole(p: torch.Tensor) -> torch.Tensor:
+    in_plane = torch.maximum(_square(p[:, 0], p[:, 2]), HOLE - _hypot(p[:, 0], p[:, 2])).clamp(min=0)
+    return _hypot(p[:, 1] - Y0, in_plane)
+
+
+def bowl(p: torch.Tensor) -> torch.Tensor:
+    q = p - torch.tensor([0.0, 0.25 + Y0, 0.0])
+    below = (q.norm(dim=-1) - BOWL_R).abs()  # the lower half of the sphere is nearest
+    rim = _hypot(_hypot(q[:, 0], q[:, 2]) - BOWL_R, q[:, 1])  # above the equator: the rim circle is
+    return torch.where(q[:, 1] <= 0, below, rim)
+
+
+def two_sheets(p: torch.Tensor) -> torch.Tensor:
+    square = _square(p[:, 0], p[:, 2])
+    return torch.minimum(_hypot(p[:, 1] - Y0 - GAP, square), _hypot(p[:, 1] - Y0 + GAP, square))
+
+
+def sample_sheet_with_hole(n: int, rng: np.random.Generator) -> np.ndarray:
+    xz = rng.uniform(-HALF, HALF, (2 * n, 2))
+    xz = xz[np.hypot(xz[:, 0], xz[:, 1]) > HOLE][:n]
+    return np.stack([xz[:, 0], np.full(len(xz), Y0), xz[:, 1]], -1)
+
+
+def sample_bowl(n: int, rng: np.random.Generator) -> np.ndarray:
+    v = rng.normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    v[:, 1] = -np.abs(v[:, 1])
+    return v * BOWL_R + np.array([0.0, 0.25 + Y0, 0.0])
+
+
+def sample_two_sheets(n: int, rng: np.random.Generator) -> np.ndarray:
+    xz = rng.uniform(-HALF, HALF, (n, 2))
+    y = Y0 + np.where(rng.random(n) < 0.5, GAP, -GAP)
+    return np.stack([xz[:, 0], y, xz[:, 1]], -1)
+
+
+SHAPES = {  # udf, surface sampler, boundary loops, object size (largest extent)
+    "sheet_with_hole": (sheet_with_hole, sample_sheet_with_hole, 2, 2 * HALF),
+    "bowl": (bowl, sample_bowl, 1, 2 * BOWL_R),
+    "two_sheets": (two_sheets, sample_two_sheets, 2, 2 * HALF),
+}
+
+
+def chamfer_to_analytic(mesh: trimesh.Trimesh, udf, sampler, n: int = 10_000) -> float:
+    """Mean of the two directed mean distances, computed without neudf_core.metrics: mesh -> surface by
+    the exact analytic UDF at mesh samples, surface -> mesh by trimesh's exact point-to-triangle query."""
+    rng = np.random.default_rng(1)
+    on_mesh = trimesh.sample.sample_surface(mesh, n, seed=2)[0]
+    to_surface = udf(torch.as_tensor(on_mesh, dtype=torch.float32)).double().numpy()
+    on_surface = sampler(n, rng)
+    to_mesh = trimesh.proximity.closest_point(mesh, on_surface)[1]
+    return float((to_surface.mean() + to_mesh.mean()) / 2)
+
+
+@pytest.mark.parametrize("method", ["meshudf", "spsr"])
+@pytest.mark.parametrize("shape", list(SHAPES))
+def test_open_surfaces_keep_their_boundaries_and_shape(shape, method):
+    udf, sampler, loops, size = SHAPES[shape]
+    mesh = extract_mesh(udf, method=method, resolution=RES)
+    assert boundary_loops(mesh) == loops
+    assert mesh.is_winding_consistent  # vertex normals (and the colours made from them) are smooth
+    chamfer = chamfer_to_analytic(mesh, udf, sampler)
+    assert chamfer < 0.01 * size, chamfer
+    # the mesh lies where the points were queried: same coordinates, no normalisation
+    surface = sampler(20_000, np.random.default_rng(3))
+    assert np.allclose(mesh.bounds, [surface.min(0), surface.max(0)], atol=3 * 2 / RES)
+
+
+def test_two_parallel_sheets_stay_two_pieces():
+    mesh = extract_mesh(two_sheets, method="meshudf", resolution=RES)
+    pieces = mesh.split(only_watertight=False)
+    assert len(pieces) == 2
+    heights = sorted(float(p.vertices[:, 1].mean()) for p in pieces)
+    assert np.allclose(heights, [Y0 - GAP, Y0 + GAP], atol=0.2 * 2 / RES)
+
+
+def test_sheet_lying_exactly_on_a_grid_plane_is_one_layer():
+    # The grid of resolution 128 over [-1, 1] has a plane at y = 0: every corner there has UDF 0 and no
+    # gradient. One sheet must come out, not two coincident ones and not none.
+    def flat(p):
+        return _hypot(p[:, 1], _square(p[:, 0], p[:, 2]))
+
+    mesh = extract_mesh(flat, method="meshudf", resolution=RES)
+    assert boundary_loops(mesh) == 1
+    assert np.allclose(mesh.vertices[:, 1], 0.0, atol=1e-6)
+    assert abs(mesh.area - (2 * HALF) ** 2) < 0.03 * (2 * HALF) ** 2
+
+
+def test_signed_field_by_marching_cubes_is_closed_and_faces_out():
+    mesh = extract_mesh(lambda p: p.norm(dim=-1) - 0.5, method="mc", resolution=64)
+    assert boundary_loops(mesh) == 0 and mesh.is_watertight
+    assert mesh.volume > 0  # outward normals
+    assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 0.5).max() < 0.25 * 2 / 64
+    # a level other than 0
+    larger = extract_mesh(lambda p: p.norm(dim=-1) - 0.5, method="mc", resolution=64, level=0.2)
+    assert np.allclose(np.linalg.norm(larger.vertices, axis=1), 0.7, atol=0.25 * 2 / 64)
+
+
+def test_threshold_is_explicit_logged_and_stored(caplog):
+    with caplog.at_level(logging.INFO, logger="neudf_core.meshing"):
+        given = extract_mesh(bowl, method="meshudf", resolution=64, threshold=0.02)
+    assert given.metadata["meshing"]["threshold"] == 0.02
+    assert given.metadata["meshing"]["threshold_source"] == "given"
+    assert "threshold 0.02 (given)" in caplog.text
+    default = extract_mesh(bowl, method="meshudf", resolution=64)
+    assert default.metadata["meshing"]["threshold"] == pytest.approx(2 / 64)  # one voxel
+    assert default.metadata["meshing"]["threshold_source"] == "default"
+    with pytest.raises(ValueError, match="threshold"):
+        extract_mesh(bowl, method="mc", resolution=64, threshold=0.02)
+
+
+def test_no_surface_in_bounds_is_a_clear_error():
+    def far(p):  # the UDF of a point outside the bounds
+        return (p - torch.tensor([3.0, 0.0, 0.0])).norm(dim=-1)
+
+    for method in ("meshudf", "spsr"):
+        with pytest.raises(ValueError, match="no surface"):
+            extract_mesh(far, method=method, resolution=64)
+    with pytest.raises(ValueError, match="no surface"):
+        extract_mesh(lambda p: p.norm(dim=-1) + 0.1, method="mc", resolution=64)
+    # a field whose lowest value stays above the threshold: no surface, whatever its gradients do
+    with pytest.raises(ValueError, match="never drops below threshold"):
+        extract_mesh(lambda p: bowl(p) + 0.1, method="meshudf", resolution=64)
+    with pytest.raises(ValueError, match="unknown meshing method"):
+        extract_mesh(bowl, method="poisson")
+
+
+def test_field_is_evaluated_sparsely_in_bounded_chunks():
+    batches: list[int] = []
+
+    def counting(p):
+        batches.append(len(p))
+        return bowl(p)
+
+    extract_mesh(counting, method="meshudf", resolution=RES, chunk=4096)
+    assert max(batches) <= 4096
+    # empty space is skipped: far fewer evaluations than the full (RES + 1)^3 grid
+    assert sum(batches) < 0.3 * (RES + 1) ** 3
+
+
+def test_non_differentiable_field_falls_back_to_central_differences(caplog):
+    def numpy_field(p):  # no autograd graph: the values come back through numpy
+        return torch.from_numpy(bowl(p).detach().numpy().copy())
+
+    with caplog.at_level(logging.INFO, logger="neudf_core.meshing"):
+        mesh = extract_mesh(numpy_field, method="meshudf", resolution=64)
+    assert "central differences" in caplog.text
+    assert boundary_loops(mesh) == 1
+
+
+def test_tiny_floating_pieces_are_dropped():
+    def with_speck(p):  # the bowl and a small closed shell far from it
+        speck = ((p - torch.tensor([0.0, -0.7, 0.0])).norm(dim=-1) - 0.03).abs()
+        return torch.minimum(bowl(p), speck)
+
+    mesh = extract_mesh(with_speck, method="meshudf", resolution=RES)
+    assert len(mesh.split(only_watertight=False)) == 1
+    assert mesh.vertices[:, 1].min() > -0.5
+    kept = extract_mesh(with_speck, method="meshudf", resolution=RES, min_component_faces=0,
+                        min_component_fraction=0.0)
+    assert len(kept.split(only_watertight=False)) == 2
+
+
+def test_vertex_colours_look_along_the_negated_normal_and_survive_glb(tmp_path):
+    mesh = extract_mesh(sheet_with_hole, method="meshudf", resolution=64)
+    seen = []
+
+    def color_fn(points, normals, view_dirs):
+        seen.append((normals, view_dirs))
+        return (points + 1) / 2  # a colour that varies over the surface
+
+    color_vertices(mesh, color_fn, chunk=1000)
+    assert len(seen) > 1  # chunked
+    normals = torch.cat([n for n, _ in seen]).numpy()
+    views = torch.cat([v for _, v in seen]).numpy()
+    assert np.allclose(views, -normals) and np.allclose(normals, mesh.vertex_normals, atol=1e-6)
+    expected = np.round((mesh.vertices + 1) / 2 * 255)
+    assert np.abs(mesh.visual.vertex_colors[:, :3] - expected).max() <= 1
+
+    path = export_mesh(mesh, tmp_path / "sheet.glb")
+    scene = trimesh.load(path, process=False)
+    (back,) = scene.geometry.values()
+    assert back.visual.material.doubleSided is True
+    # with a material present trimesh files COLOR_0 under the vertex attributes
+    assert np.array_equal(back.visual.vertex_attributes["color"], mesh.visual.vertex_colors)
+    assert np.allclose(back.vertices, mesh.vertices, atol=1e-6)
+    assert boundary_loops(back) == boundary_loops(mesh) == 2
+    plain = trimesh.load(path, force="mesh", process=False, skip_materials=True)
+    assert np.array_equal(plain.visual.vertex_colors, mesh.visual.vertex_colors)
+
+    for suffix in (".ply", ".obj"):
+        back = trimesh.load(export_mesh(mesh, tmp_path / f"sheet{suffix}"), process=False)
+        assert np.array_equal(back.visual.vertex_colors, mesh.visual.vertex_colors)
+        assert boundary_loops(back) == 2
+    with pytest.raises(ValueError, match="unknown mesh format"):
+        export_mesh(mesh, tmp_path / "sheet.stl")
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    from neudf_core import synthetic
+
+    out = tmp_path_factory.mktemp("mesh_run_scene")
+    return synthetic.write_neus_dataset(out, synthetic.procedural_mesh("sheet"), n_views=8, size=32)
+
+
+# the quick preset, cut down so that two iterations take seconds
+TINY = {"data": {"white_background": True}, "optim": {"rays": 64},
+        "sampler": {"n_coarse": 16, "n_importance": 16}}
+
+
+def test_mesh_run_end_to_end_on_a_trained_run(tiny_scene, tmp_path):
+    from neudf_core.trainer import train
+
+    # The signed baseline starts as a sphere, so it has a surface after two iterations.
+    sdf_run = tmp_path / "sdf_run"
+    train(tiny_scene, sdf_run, preset="quick", iters=2, overrides={**TINY, "renderer": {"weight": "neus_sdf"}})
+    reports = []
+    mesh = mesh_run(sdf_run, tmp_path / "out" / "mesh.glb", method="mc", resolution=32,
+                    progress=lambda f, m="", **i: reports.append(f))
+    assert reports[-1] == 1.0 and all(b >= a for a, b in zip(reports, reports[1:]))
+    (back,) = trimesh.load(tmp_path / "out" / "mesh.glb", process=False).geometry.values()
+    colours = back.visual.vertex_attributes["color"]
+    assert len(colours) == len(back.vertices) == len(mesh.vertices)
+    assert boundary_loops(back) == 0  # NeuS-SDF is closed by construction
+    assert np.linalg.norm(back.vertices, axis=1).max() < 1.0  # in the unit sphere's coordinates
+    with pytest.raises(ValueError, match="signed"):
+        mesh_run(sdf_run, tmp_path / "x.glb", method="meshudf", resolution=32)
+
+    # NeUDF starts as the distance to a point: after two iterations there is no surface yet, and the
+    # error says so instead of writing an empty file.
+    udf_run = tmp_path / "udf_run"
+    train(tiny_scene, udf_run, preset="quick", iters=2, overrides=TINY)
+    with pytest.raises(ValueError, match="no surface"):
+        mesh_run(udf_run, tmp_path / "udf.glb", resolution=32)
+    assert not (tmp_path / "udf.glb").exists()
+    with pytest.raises(ValueError, match="unsigned"):
+        mesh_run(udf_run, tmp_path / "udf.glb", method="mc", resolution=32)
+    with pytest.raises(ValueError, match="unknown mesh format"):
+        mesh_run(udf_run, tmp_path / "udf.stl", resolution=32)

@@ -1,0 +1,211 @@
+"""The queue: the job store's claims on SQLite and PostgreSQL, a real Celery worker on the real Redis, and
+a worker SIGKILLed mid-job whose job finishes on a new worker without re-running its finished stages."""
+
+from __future__ import annotations
+
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from service.settings import Settings
+from tests.conftest import (
+    POSTGRES_URL,
+    QUICK_JOB,
+    WorkerProcess,
+    assert_monotonic_progress,
+    assert_valid_glb,
+    finished,
+    neudf_env,
+    wait_job,
+)
+from worker.pipeline import STAGE_NAMES, completed_stages
+from worker.store import JobStore
+
+
+# -- the store ------------------------------------------------------------------------------------------------
+def _postgres_schema() -> Iterator[str]:
+    """A PostgreSQL URL whose tables live in a fresh schema, dropped afterwards; skip without a server."""
+    import sqlalchemy as sa
+
+    engine = sa.create_engine(POSTGRES_URL)
+    schema = f"neudf_test_{uuid.uuid4().hex[:8]}"
+    try:
+        with engine.begin() as conn:
+            conn.execute(sa.text(f"CREATE SCHEMA {schema}"))
+    except sa.exc.OperationalError:
+        pytest.skip("no PostgreSQL server at 127.0.0.1:5432")
+    try:
+        yield f"{POSTGRES_URL}?options=-csearch_path%3D{schema}"
+    finally:
+        with engine.begin() as conn:
+            conn.execute(sa.text(f"DROP SCHEMA {schema} CASCADE"))
+        engine.dispose()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'jobs.db'}"
+    else:
+        yield from _postgres_schema()
+
+
+def _new_job(store: JobStore) -> str:
+    job_id = uuid.uuid4().hex
+    store.create(job_id=job_id, owner=None, stages=list(STAGE_NAMES), options={}, input_name="v.mp4", input_bytes=1)
+    return job_id
+
+
+def test_store_claims_once_and_recovers_silent_jobs(store_url: str) -> None:
+    store = JobStore(store_url)
+    job_id = _new_job(store)
+    first = store.claim(job_id, "w1", stale_after_s=60)
+    assert first is not None and first.state == "running" and first.attempts == 1
+    assert store.claim(job_id, "w2", stale_after_s=60) is None  # a duplicate delivery while w1 is alive
+    assert not store.report(job_id, "w1", stage="frames", progress=0.1, message="x")
+    assert store.report(job_id, "w2", stage="frames", progress=0.2, message="x")  # not w2's job: stop
+    time.sleep(1.1)
+    assert [j.id for j in store.stale_running(stale_after_s=1)] == [job_id]
+    assert store.requeue_stale(job_id, stale_after_s=1) and not store.requeue_stale(job_id, stale_after_s=1)
+    second = store.claim(job_id, "w2", stale_after_s=60)
+    assert second is not None and second.attempts == 2 and second.worker == "w2"
+    assert not store.finish(job_id, "w1", "succeeded")  # w1 lost it
+    assert store.finish(job_id, "w2", "succeeded") and store.get(job_id).state == "succeeded"
+    assert store.claim(job_id, "w3", stale_after_s=0) is None  # finished jobs are never run again
+
+
+def test_store_cancel(store_url: str) -> None:
+    store = JobStore(store_url)
+    queued, running = _new_job(store), _new_job(store)
+    assert store.request_cancel(queued) == "cancelled"
+    assert store.claim(queued, "w1", 60) is None
+    store.claim(running, "w1", 60)
+    assert store.request_cancel(running) == "running"
+    assert store.report(running, "w1", stage="train", progress=0.5, message="x")  # the flag reaches the worker
+    assert store.request_cancel(uuid.uuid4().hex) is None
+    assert not store.delete(running)
+    store.finish(running, "w1", "cancelled")
+    assert store.delete(running) and store.get(running) is None
+
+
+# -- real workers on the embedded broker and on the real Redis ------------------------------------------------
+def _queue_stack(tmp_path: Path, broker_url: str | None) -> Iterator[dict[str, Any]]:
+    """API in process, workers as processes. With Redis the store is PostgreSQL (SQLite without a server),
+    as a scaled deployment has it; the embedded broker goes with SQLite, as `neudf serve` has it."""
+    gen = None
+    database_url = f"sqlite:///{tmp_path / 'jobs.db'}"
+    if broker_url is not None:
+        try:
+            gen = _postgres_schema()
+            database_url = next(gen)
+        except pytest.skip.Exception:
+            gen = None
+    data_dir = tmp_path / "data"
+    extra = {"NEUDF_DATABASE_URL": database_url}
+    if broker_url is not None:
+        extra["NEUDF_BROKER_URL"] = broker_url
+    env = neudf_env(data_dir, **extra)
+    settings = Settings(data_dir=data_dir, broker_url=broker_url, database_url=database_url, heartbeat_s=1,
+                        stale_after_s=5)
+    workers: list[WorkerProcess] = []
+
+    def start_worker() -> WorkerProcess:
+        worker = WorkerProcess(env, tmp_path / f"worker{len(workers)}.log")
+        workers.append(worker)
+        return worker
+
+    with TestClient(create_app(settings, with_page=False)) as client:
+        try:
+            yield {"client": client, "settings": settings, "start_worker": start_worker, "tmp": tmp_path}
+        finally:
+            for worker in workers:
+                worker.stop()
+            if gen is not None:
+                gen.close()
+
+
+@pytest.fixture
+def redis_stack(redis_db: str, tmp_path: Path) -> Iterator[dict[str, Any]]:
+    yield from _queue_stack(tmp_path, redis_db)
+
+
+@pytest.fixture(params=["embedded", pytest.param("redis", marks=pytest.mark.redis)])
+def any_stack(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[dict[str, Any]]:
+    """Both brokers: the embedded filesystem one and Redis."""
+    if request.param == "redis":
+        yield from _queue_stack(tmp_path, request.getfixturevalue("redis_db"))
+    else:
+        yield from _queue_stack(tmp_path, None)
+
+
+def _wait_worker(client: TestClient, count: int = 1, timeout_s: float = 60) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        health = client.get("/api/health").json()
+        if health["workers_alive"] >= count:
+            return health
+        time.sleep(0.3)
+    raise TimeoutError(f"no worker came up: {health}")
+
+
+def _upload(client: TestClient | httpx.Client, video: Path, **fields: str) -> str:
+    response = client.post("/api/jobs", files={"file": ("orbit.mp4", video.read_bytes(), "video/mp4")},
+                           data={**QUICK_JOB, **fields})
+    assert response.status_code == 201, response.text
+    return response.json()["id"]
+
+
+@pytest.mark.redis
+@pytest.mark.slow
+def test_redis_worker_video_to_glb(redis_stack: dict[str, Any], tiny_video: Path) -> None:
+    client = redis_stack["client"]
+    redis_stack["start_worker"]()
+    health = _wait_worker(client)
+    assert health["status"] == "ok" and health["broker"]["url"].startswith("redis://")
+    job_id = _upload(client, tiny_video)
+    job, seen = wait_job(lambda: client.get(f"/api/jobs/{job_id}").json(), finished, poll_s=0.1)
+    assert job["state"] == "succeeded", job["error"]
+    assert_monotonic_progress(seen, list(STAGE_NAMES))
+    assert all(s["runs"] == 1 for s in job["stages"]) and job["attempts"] == 1
+    response = client.get(job["artifacts"]["mesh.glb"])
+    assert response.status_code == 200
+    assert_valid_glb(response.content)
+
+
+@pytest.mark.slow
+def test_killed_worker_job_resumes_on_a_new_worker(any_stack: dict[str, Any], tiny_video: Path) -> None:
+    """SIGKILL the worker (and its pool process) during training; a new worker finishes the job, skipping
+    the stages that had finished. (The embedded broker loses the message of a killed worker outright and
+    Redis holds it until the visibility timeout: the store's stale heartbeat is what brings the job back.)"""
+    client, settings = any_stack["client"], any_stack["settings"]
+    first = any_stack["start_worker"]()
+    _wait_worker(client)
+    job_id = _upload(client, tiny_video)
+    get = lambda: client.get(f"/api/jobs/{job_id}").json()  # noqa: E731
+    job, _ = wait_job(get, lambda j: (j["stage"] == "train" and j["stages"][3]["progress"] > 0) or finished(j),
+                      poll_s=0.1)
+    assert job["state"] == "running", job
+    before = completed_stages(settings.job_dir(job_id))
+    assert set(before) == {"frames", "poses", "scene"}
+    first.kill()
+
+    time.sleep(1.0)
+    assert get()["state"] == "running"  # nobody knows yet: the record waits for its heartbeat to go stale
+    any_stack["start_worker"]()
+    job, _ = wait_job(get, finished)
+    assert job["state"] == "succeeded", job["error"]
+    assert job["attempts"] == 2
+    runs = {s["name"]: s["runs"] for s in job["stages"]}
+    assert runs == {"frames": 1, "poses": 1, "scene": 1, "train": 2, "mesh": 1, "export": 1}, runs
+    after = completed_stages(settings.job_dir(job_id))
+    for name in ("frames", "poses", "scene"):  # the finished stages' markers are the very same
+        assert after[name]["finished_at"] == before[name]["finished_at"]
+    response = client.get(job["artifacts"]["mesh.glb"])
+    assert_valid_glb(response.content)

@@ -1,0 +1,232 @@
+"""The web page: Gradio components mounted into the FastAPI app, talking to the same JobService as /api.
+
+Upload (Gradio's file widget shows the upload's progress), the job list, the selected job's state with
+a progress bar and its stages, the chosen frames, the camera path, the loss curve, the GLB in Gradio's
+3-D viewer and a download button. A timer polls the job store once a second. Everything the page needs
+ships inside the gradio wheel: no CDN, no internet.
+"""
+
+from __future__ import annotations
+
+import html
+import shutil
+from pathlib import Path
+from typing import Any
+
+import gradio as gr
+import pandas as pd
+from fastapi import FastAPI
+
+from service.jobs import JobRejected, JobService
+from worker.store import JobRecord
+
+POLL_S = 1.0
+CSS = """
+#neudf-status progress { width: 100%; height: 1.2rem; accent-color: #2f6fde; }
+#neudf-status table { width: 100%; border-collapse: collapse; font-size: 0.9rem; margin-top: 0.5rem; }
+#neudf-status td, #neudf-status th { padding: 2px 6px; border-bottom: 1px solid #ddd; text-align: left; }
+#neudf-status .state-failed { color: #b00020; } #neudf-status .state-succeeded { color: #1b7f3b; }
+"""
+# System fonts only: the default theme would fetch web fonts from the internet.
+FONTS = ["ui-sans-serif", "system-ui", "sans-serif"]
+MONO = ["ui-monospace", "monospace"]
+
+
+def _serve_copy(path: Path, job_id: str) -> str:
+    """Copy a job file where Gradio may serve it from (its upload folder), keyed by size and mtime.
+
+    The data folder may lie outside the places Gradio serves; listing it in ``allowed_paths`` would
+    expose every job's files to anyone, bypassing the tokens.
+    """
+    stat = path.stat()
+    folder = Path(gr.utils.get_upload_folder()) / "neudf" / job_id / f"{stat.st_size}-{int(stat.st_mtime_ns)}"
+    target = folder / path.name
+    if not target.exists():
+        folder.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(path, target)
+    return str(target)
+
+
+def _artifact_copy(service: JobService, job_id: str, name: str, owner: str | None) -> str | None:
+    try:
+        return _serve_copy(service.artifact(job_id, name, owner), job_id)
+    except (JobRejected, OSError):
+        return None
+
+
+def _status_html(job: JobRecord | None) -> str:
+    if job is None:
+        return "<div id='neudf-job' data-state='none'><p>No job selected. Upload a video or pick one from the list.</p></div>"
+    rows = "".join(
+        f"<tr><td>{s.name}</td><td>{s.state}</td><td>{100 * s.progress:.0f}%</td>"
+        f"<td>{'' if s.seconds is None else f'{s.seconds:.1f} s'}</td><td>{s.runs}</td>"
+        f"<td>{'' if s.eta_s is None else f'{s.eta_s:.0f} s'}</td></tr>"
+        for s in job.stages
+    )
+    error = ""
+    if job.error:
+        error = (f"<p class='state-failed'>Failed in <b>{html.escape(job.error.get('stage', ''))}</b>: "
+                 f"{html.escape(job.error.get('message', ''))}</p>")
+    registered = job.metrics.get("frames_registered")
+    facts = f" &middot; {registered}/{job.metrics.get('frames_total')} frames registered" if registered else ""
+    return (
+        f"<div id='neudf-job' data-job='{job.id}' data-state='{job.state}' data-progress='{job.progress:.4f}'>"
+        f"<p><b>Job {job.id[:8]}</b> ({html.escape(job.input_name)}): "
+        f"<span class='state-{job.state}'>{job.state}</span>"
+        f"{' &middot; stage ' + job.stage if job.stage else ''} &middot; {100 * job.progress:.1f}%{facts}</p>"
+        f"<progress id='neudf-progress' max='1' value='{job.progress:.4f}'></progress>"
+        f"<p>{html.escape(job.message)}</p>{error}"
+        "<table><tr><th>stage</th><th>state</th><th>progress</th><th>time</th><th>runs</th><th>eta</th></tr>"
+        f"{rows}</table></div>"
+    )
+
+
+def _jobs_table(jobs: list[JobRecord]) -> pd.DataFrame:
+    return pd.DataFrame(
+        [[j.id[:8], j.input_name, j.state, j.stage or "", f"{100 * j.progress:.0f}%", j.created_at.strftime("%m-%d %H:%M")]
+         for j in jobs],
+        columns=["job", "video", "state", "stage", "progress", "created (UTC)"],
+    )
+
+
+def _loss_frame(service: JobService, job_id: str) -> pd.DataFrame | None:
+    from worker.stages.export import read_metrics_log
+
+    rows = read_metrics_log(service.settings.job_dir(job_id) / "run" / "metrics.jsonl")
+    rows = [r for r in rows if "iter" in r and "loss" in r]
+    return pd.DataFrame({"iter": [r["iter"] for r in rows], "loss": [r["loss"] for r in rows]}) if rows else None
+
+
+def build_page(service: JobService) -> gr.Blocks:
+    from neudf_core.config import available_presets
+
+    settings = service.settings
+
+    def owner_of(token: str) -> str | None:
+        if not settings.auth_enabled:
+            return None
+        owner = settings.owner_of((token or "").strip())
+        if owner is None:
+            raise JobRejected(401, "enter a valid access token")
+        return owner
+
+    def submit(file: str | None, preset: str, frames: float | None, iters: float | None, resolution: float | None,
+               threshold: float | None, min_faces: float | None, token: str) -> tuple[str | None, str]:
+        if not file:
+            raise gr.Error("Choose a video first.")
+        fields = {"preset": preset}
+        for key, value in (("frames", frames), ("iters", iters), ("mesh_resolution", resolution),
+                           ("mesh_min_faces", min_faces)):
+            if value:
+                fields[key] = str(int(value))
+        if threshold:
+            fields["mesh_threshold"] = str(float(threshold))
+        try:
+            job = service.create_from_file(Path(file), Path(file).name, fields, owner_of(token))
+        except JobRejected as exc:
+            raise gr.Error(exc.detail) from None
+        return job.id, f"Job {job.id[:8]} queued."
+
+    def cancel(job_id: str | None, token: str) -> str:
+        if not job_id:
+            return "No job selected."
+        try:
+            service.cancel(job_id, owner_of(token))
+        except JobRejected as exc:
+            return exc.detail
+        return f"Cancel requested for job {job_id[:8]}."
+
+    def pick(ids: list[str], evt: gr.SelectData) -> str | None:
+        row = evt.index[0] if isinstance(evt.index, list | tuple) else evt.index
+        try:
+            return ids[int(row)]
+        except (IndexError, TypeError, ValueError):
+            return None
+
+    def refresh(job_id: str | None, token: str, shown: dict[str, Any]) -> tuple:
+        try:
+            owner = owner_of(token)
+            jobs, _ = service.list(owner, limit=50)
+            job = service.get(job_id, owner) if job_id else None
+        except JobRejected:
+            jobs, job = [], None
+        table, ids = _jobs_table(jobs), [j.id for j in jobs]
+        status = _status_html(job)
+        if job is None:
+            return table, ids, status, None, None, None, None, gr.DownloadButton(value=None, visible=False), {}
+        # Heavy widgets change only when their file did: a timer tick must not reload the 3-D view.
+        names = set(job.artifacts)
+        signature = {"job": job.id, "artifacts": sorted(names), "loss_rows": None}
+        loss = _loss_frame(service, job.id)
+        signature["loss_rows"] = None if loss is None else len(loss)
+        same_job = shown.get("job") == job.id
+        same_files = same_job and shown.get("artifacts") == signature["artifacts"]
+
+        def keep_or(value_fn):  # noqa: ANN001, ANN202
+            return gr.skip() if same_files else value_fn()
+
+        frames = keep_or(lambda: [_serve_copy(p, job.id) for p in service.frames(job.id, owner)] or None)
+        cameras = keep_or(lambda: _artifact_copy(service, job.id, "cameras.png", owner))
+        model_path = _artifact_copy(service, job.id, "mesh.glb", owner) if not same_files else None
+        model = gr.skip() if same_files else model_path
+        download = keep_or(lambda: gr.DownloadButton(value=model_path, visible=model_path is not None))
+        loss_out = gr.skip() if same_job and shown.get("loss_rows") == signature["loss_rows"] else loss
+        return table, ids, status, frames, cameras, loss_out, model, download, signature
+
+    theme = gr.themes.Default(font=FONTS, font_mono=MONO)
+    with gr.Blocks(title="NeUDF: video to open mesh", analytics_enabled=False, delete_cache=(3600, 86400)) as page:
+        page.neudf_theme, page.neudf_css = theme, CSS  # mount_page passes them to gradio
+        gr.Markdown("## NeUDF: phone video in, open-surface mesh out\nUpload a walk-around video of an object; "
+                    "the job runs frames → poses → scene → train → mesh → export. The same jobs are at "
+                    "[/api/jobs](/api/jobs) ([API docs](/docs)).")
+        job_id = gr.State(None)
+        job_ids = gr.State([])  # the full ids of the rows of the job table
+        shown = gr.State({})
+        with gr.Row():
+            with gr.Column(scale=1, min_width=300):
+                token = gr.Textbox(label="Access token", type="password", visible=settings.auth_enabled)
+                video = gr.File(label="Video", file_types=["video"], type="filepath", elem_id="neudf-upload")
+                presets = available_presets()
+                preset = gr.Dropdown(presets, value=settings.default_preset if settings.default_preset in presets
+                                     else presets[0], label="Preset")
+                with gr.Accordion("Options (empty: the preset's defaults)", open=False, elem_id="neudf-options"):
+                    with gr.Row():
+                        frames = gr.Number(label="Frames", value=None, precision=0, minimum=0)
+                        iters = gr.Number(label="Iterations", value=None, precision=0, minimum=0)
+                    with gr.Row():
+                        resolution = gr.Number(label="Mesh resolution", value=None, precision=0, minimum=0)
+                        threshold = gr.Number(label="Mesh threshold", value=None, minimum=0)
+                        min_faces = gr.Number(label="Smallest piece (faces)", value=None, precision=0, minimum=0)
+                submit_btn = gr.Button("Reconstruct", variant="primary", elem_id="neudf-submit")
+                notice = gr.Markdown(elem_id="neudf-notice")
+                jobs = gr.Dataframe(label="Jobs (click one)", interactive=False, elem_id="neudf-jobs", max_height=320)
+            with gr.Column(scale=2):
+                status = gr.HTML(_status_html(None), elem_id="neudf-status")
+                cancel_btn = gr.Button("Cancel job", size="sm", variant="stop")
+                with gr.Row():
+                    model = gr.Model3D(label="Mesh (GLB)", elem_id="neudf-model", height=420,
+                                       clear_color=(0.95, 0.95, 0.95, 1.0))
+                with gr.Row():
+                    download = gr.DownloadButton("Download GLB", visible=False, elem_id="neudf-download")
+                with gr.Row():
+                    loss = gr.LinePlot(x="iter", y="loss", label="Loss", elem_id="neudf-loss", height=240)
+                    cameras = gr.Image(label="Camera path", elem_id="neudf-cameras", interactive=False)
+                gallery = gr.Gallery(label="Chosen frames", elem_id="neudf-frames", columns=8, height=220)
+
+        outputs = [jobs, job_ids, status, gallery, cameras, loss, model, download, shown]
+        submit_btn.click(submit, [video, preset, frames, iters, resolution, threshold, min_faces, token], [job_id, notice]).then(
+            refresh, [job_id, token, shown], outputs)
+        cancel_btn.click(cancel, [job_id, token], [notice])
+        jobs.select(pick, [job_ids], [job_id]).then(refresh, [job_id, token, shown], outputs)
+        timer = gr.Timer(POLL_S)
+        timer.tick(refresh, [job_id, token, shown], outputs, show_progress="hidden")
+        page.load(refresh, [job_id, token, shown], outputs)
+    return page
+
+
+def mount_page(app: FastAPI, service: JobService) -> None:
+    page = build_page(service)
+    gr.mount_gradio_app(app, page, path="/", footer_links=[], ssr_mode=False,
+                        max_file_size=int(service.settings.max_upload_bytes), theme=page.neudf_theme,
+                        css=page.neudf_css)
+

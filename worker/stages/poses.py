@@ -1,0 +1,325 @@
+"""Capture stage 2, poses: pycolmap structure from motion on the chosen frames.
+
+Steps, each reported through ``progress``:
+
+1. SIFT features (pycolmap, CPU), one camera shared by all frames (one phone, one zoom) with a distortion
+   model (OPENCV by default), the SIFT image size capped. Extraction runs in batches so progress moves
+   and a cancel takes effect between batches.
+2. Matching on an explicit list of image pairs. A small set (fewer than ``exhaustive_below`` frames) is
+   matched exhaustively. A video is matched sequentially: each frame with its ``overlap`` successors, with
+   successors at power-of-two distances (as COLMAP's quadratic overlap), and, to close the loop of a
+   walk-around, all pairs among ~``loop_keyframes`` frames spread over the video plus the first frames
+   against the last. (COLMAP's own loop detection needs a vocabulary tree file we do not ship.)
+3. Incremental mapping, with a callback per registered image for progress; the largest model is kept.
+4. Undistortion to a pinhole camera, because NeuS's ``world_mat`` is a pinhole projection. When the
+   estimated distortion moves no pixel by more than ``undistort_threshold_px`` the frames are used as they
+   are (no resampling blur) and the camera is rewritten as PINHOLE; otherwise pycolmap's
+   ``undistort_images`` resamples them.
+
+Writes ``DATA/colmap/`` (database.db, sparse/<k>/, undistorted/{images,sparse}/, frames_all.json and
+poses.json, the marker written last) and merges frames_total, frames_registered, reprojection_error_px,
+points and the seconds of each step into ``DATA/capture.json``. Raises StageError when too few frames
+register.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import shutil
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pycolmap
+from pydantic import BaseModel, ConfigDict, Field
+
+from neudf_core.progress import Cancelled, ProgressFn, null_progress, sub_progress
+from worker.errors import StageError
+from worker.stages.frames import read_frames_json, update_capture_json, write_json_atomic
+
+__all__ = ["STAGE", "PoseOptions", "estimate_poses", "is_done", "image_pairs", "colmap_dir", "undistorted_dir"]
+
+STAGE = "poses"
+
+
+class PoseOptions(BaseModel):
+    """Knobs of the pycolmap stage; the defaults suit a phone walk-around of 100-300 frames."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    camera_model: Literal["OPENCV", "SIMPLE_RADIAL", "RADIAL", "PINHOLE", "SIMPLE_PINHOLE"] = Field(
+        "OPENCV", description="COLMAP camera model shared by all frames (with distortion unless *PINHOLE).")
+    sift_max_image_size: int = Field(1600, ge=64, description="Longest side SIFT sees.")
+    sift_max_features: int = Field(8192, ge=100, description="Most SIFT features per image.")
+    exhaustive_below: int = Field(60, ge=0, description="Match all pairs when there are fewer frames than this.")
+    overlap: int = Field(10, ge=1, description="Sequential matching: successors each frame is matched with.")
+    loop_keyframes: int = Field(25, ge=0, description="Frames spread over the video matched all-against-all.")
+    min_registered_fraction: float = Field(0.4, ge=0, le=1, description="Below this share of frames: failure.")
+    good_registered_fraction: float = Field(0.8, ge=0, le=1, description="Below this share: a warning.")
+    min_registered: int = Field(8, ge=2, description="Fewest registered frames, whatever the share.")
+    undistort_threshold_px: float = Field(
+        1.0, ge=0, description="Largest distortion displacement (px) still treated as a pinhole camera.")
+    extract_batch: int = Field(16, ge=1, description="Images per SIFT call (progress and cancel granularity).")
+    match_batch: int = Field(256, ge=1, description="Pairs per matching call.")
+    num_threads: int = Field(-1, description="Threads for pycolmap (-1: all cores).")
+    seed: int = Field(0, description="Random seed of the mapper's RANSAC, for repeatable runs.")
+    colmap_log: bool = Field(False, description="Let pycolmap log its INFO lines (thousands) to stderr.")
+
+
+def colmap_dir(data_dir: str | Path) -> Path:
+    return Path(data_dir) / "colmap"
+
+
+def undistorted_dir(data_dir: str | Path) -> Path:
+    """Where the pinhole model (sparse/) and its images (images/) live for the scene stage."""
+    return colmap_dir(data_dir) / "undistorted"
+
+
+def is_done(data_dir: str | Path) -> bool:
+    """True when the stage finished: its marker, the pinhole model and its images exist."""
+    und = undistorted_dir(data_dir)
+    return (
+        (colmap_dir(data_dir) / "poses.json").is_file()
+        and (und / "sparse" / "images.bin").is_file()
+        and (und / "images").is_dir()
+    )
+
+
+# -- pairs ---------------------------------------------------------------------------------------------
+def image_pairs(n: int, *, exhaustive_below: int = 60, overlap: int = 10, loop_keyframes: int = 25) -> list[tuple[int, int]]:
+    """Index pairs (i < j) to match among ``n`` frames of a video, in a stable order."""
+    if n < exhaustive_below:
+        return [(i, j) for i in range(n) for j in range(i + 1, n)]
+    pairs: set[tuple[int, int]] = set()
+    for i in range(n):
+        for d in range(1, overlap + 1):  # neighbours in time
+            if i + d < n:
+                pairs.add((i, i + d))
+        d = 2 ** math.ceil(math.log2(overlap + 1))
+        while i + d < n:  # farther frames at doubling distances: bridges over a blurry stretch
+            pairs.add((i, i + d))
+            d *= 2
+    n_keys = min(loop_keyframes, max(2, n // 4))  # short videos: fewer keyframes, not a near-exhaustive set
+    if loop_keyframes > 1:  # a walk-around ends where it began: let keyframes find each other
+        keys = sorted(set(np.linspace(0, n - 1, n_keys).round().astype(int).tolist()))
+        pairs.update((a, b) for k, a in enumerate(keys) for b in keys[k + 1:])
+        for a in range(min(overlap, n)):
+            for b in range(max(n - overlap, a + 1), n):
+                pairs.add((a, b))
+    return sorted(pairs)
+
+
+@contextlib.contextmanager
+def _colmap_log_level(verbose: bool) -> Iterator[None]:
+    """pycolmap logs every image and pair at INFO: keep warnings only, unless asked (the setting is global)."""
+    previous = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = previous if verbose else max(previous, int(pycolmap.logging.WARNING))
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = previous
+
+
+# -- the steps -------------------------------------------------------------------------------------------
+def _extract(db: Path, image_dir: Path, names: list[str], opts: PoseOptions, progress: ProgressFn) -> None:
+    reader = pycolmap.ImageReaderOptions(camera_model=opts.camera_model)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = opts.sift_max_image_size
+    extraction.num_threads = opts.num_threads
+    extraction.sift.max_num_features = opts.sift_max_features
+    for start in range(0, len(names), opts.extract_batch):
+        batch = names[start:start + opts.extract_batch]
+        progress(start / len(names), f"SIFT features {start}/{len(names)}")
+        pycolmap.extract_features(db, image_dir, image_names=batch, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        if reader.existing_camera_id < 0:  # one camera for the whole video: later batches reuse the first's
+            with contextlib.closing(pycolmap.Database.open(str(db))) as database:
+                reader.existing_camera_id = database.read_all_cameras()[0].camera_id
+    progress(1.0, f"SIFT features {len(names)}/{len(names)}")
+
+
+def _match(db: Path, work: Path, names: list[str], opts: PoseOptions, progress: ProgressFn) -> int:
+    pairs = image_pairs(len(names), exhaustive_below=opts.exhaustive_below, overlap=opts.overlap,
+                        loop_keyframes=opts.loop_keyframes)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = opts.num_threads
+    pair_file = work / "pairs.txt"
+    for start in range(0, len(pairs), opts.match_batch):
+        progress(start / len(pairs), f"matching pairs {start}/{len(pairs)}")
+        chunk = pairs[start:start + opts.match_batch]
+        pair_file.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in chunk))
+        pycolmap.match_image_pairs(db, matching_options=matching,
+                                   pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pair_file)),
+                                   device=pycolmap.Device.cpu)
+    pair_file.unlink(missing_ok=True)
+    progress(1.0, f"matched {len(pairs)} pairs")
+    return len(pairs)
+
+
+def _map(db: Path, image_dir: Path, sparse: Path, n_images: int, opts: PoseOptions,
+         progress: ProgressFn) -> tuple[pycolmap.Reconstruction, Path, int]:
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = opts.num_threads
+    options.random_seed = opts.seed
+    token = pycolmap.CancellationToken()
+    registered = 0
+    cancelled: list[Cancelled] = []
+
+    def on_image() -> None:
+        nonlocal registered
+        registered += 1
+        try:
+            progress(min(registered / n_images, 1.0), f"registered {registered}/{n_images} frames",
+                     registered=registered)
+        except Cancelled as exc:  # stop pycolmap cleanly, re-raise once it has returned
+            cancelled.append(exc)
+            token.cancel()
+
+    sparse.mkdir(parents=True, exist_ok=True)
+    try:
+        models = pycolmap.incremental_mapping(db, image_dir, sparse, options=options,
+                                              next_image_callback=on_image, cancellation_token=token)
+    except InterruptedError:
+        if cancelled:
+            raise cancelled[0] from None
+        raise
+    if cancelled:
+        raise cancelled[0]
+    if not models:
+        raise StageError(
+            STAGE,
+            f"no camera poses could be found for the {n_images} frames: they share too few features. "
+            "Film slowly all around a textured object, with the object in view and good light.",
+            "registration",
+        )
+    key = max(models, key=lambda k: models[k].num_reg_images())
+    return models[key], sparse / str(key), len(models)
+
+
+def _max_distortion_px(camera: pycolmap.Camera) -> float:
+    """Largest shift a pixel gets from the camera's distortion, over a grid covering the image."""
+    u, v = np.meshgrid(np.linspace(0.5, camera.width - 0.5, 17), np.linspace(0.5, camera.height - 0.5, 17))
+    pixels = np.stack([u.ravel(), v.ravel()], -1)
+    normalized = camera.cam_from_img(pixels)
+    fx, fy = camera.focal_length_x, camera.focal_length_y
+    cx, cy = camera.principal_point_x, camera.principal_point_y
+    pinhole = np.stack([normalized[:, 0] * fx + cx, normalized[:, 1] * fy + cy], -1)
+    return float(np.abs(pinhole - pixels).max())
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    try:
+        os.link(src, dst)  # same file system: no second copy of 200 frames
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def _undistort(model: pycolmap.Reconstruction, model_dir: Path, image_dir: Path, out: Path,
+               threshold_px: float) -> dict[str, Any]:
+    shutil.rmtree(out, ignore_errors=True)
+    camera = next(iter(model.cameras.values()))
+    shift = _max_distortion_px(camera) if not camera.model_name.endswith("PINHOLE") else 0.0
+    if shift > threshold_px:
+        pycolmap.undistort_images(str(out), str(model_dir), str(image_dir), output_type="COLMAP")
+        return {"undistorted": True, "max_distortion_px": round(shift, 3)}
+    # Negligible distortion: the same pixels, the same focal lengths, a pinhole model.
+    (out / "images").mkdir(parents=True)
+    (out / "sparse").mkdir()
+    for image in model.images.values():
+        if image.has_pose:
+            _link_or_copy(image_dir / image.name, out / "images" / image.name)
+    pinhole = pycolmap.Reconstruction(str(model_dir))  # a copy: the mapped model stays as it was
+    for cam in pinhole.cameras.values():  # in place: images keep pointing at their camera
+        params = [cam.focal_length_x, cam.focal_length_y, cam.principal_point_x, cam.principal_point_y]
+        cam.model = pycolmap.CameraModelId.PINHOLE
+        cam.params = params
+    pinhole.write(str(out / "sparse"))
+    return {"undistorted": False, "max_distortion_px": round(shift, 3)}
+
+
+def estimate_poses(
+    data_dir: str | Path,
+    *,
+    options: PoseOptions | None = None,
+    progress: ProgressFn = null_progress,
+) -> dict[str, Any]:
+    """Pose the frames of DATA/image with pycolmap; returns the figures merged into capture.json."""
+    opts = options or PoseOptions()
+    with _colmap_log_level(opts.colmap_log):
+        return _estimate_poses(Path(data_dir), opts, progress)
+
+
+def _estimate_poses(data_dir: Path, opts: PoseOptions, progress: ProgressFn) -> dict[str, Any]:
+    image_dir = data_dir / "image"
+    try:
+        frames = read_frames_json(data_dir)
+    except (OSError, ValueError) as exc:
+        raise StageError(STAGE, "no frames to pose: run the frames stage first", "missing") from exc
+    names = [f["file"] for f in frames]
+    work = colmap_dir(data_dir)
+    shutil.rmtree(work, ignore_errors=True)  # a rerun starts clean: pycolmap appends to a database
+    work.mkdir(parents=True)
+    for stale in ("cameras_sphere.npz", "cameras.png"):  # the scene stage's, made from the old poses
+        (data_dir / stale).unlink(missing_ok=True)
+    update_capture_json(data_dir, drop=("scene", "scene_options", "warnings"))
+    write_json_atomic(work / "frames_all.json", frames)  # the scene stage renumbers; keep the original list
+    db = work / "database.db"
+    pycolmap.set_random_seed(opts.seed)
+    seconds: dict[str, float] = {}
+
+    t = time.perf_counter()
+    _extract(db, image_dir, names, opts, sub_progress(progress, 0.0, 0.3))
+    seconds["features"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    n_pairs = _match(db, work, names, opts, sub_progress(progress, 0.3, 0.55))
+    seconds["matching"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    model, model_dir, n_models = _map(db, image_dir, work / "sparse", len(names), opts,
+                                      sub_progress(progress, 0.55, 0.95))
+    seconds["mapping"] = time.perf_counter() - t
+
+    total, registered = len(names), model.num_reg_images()
+    needed = max(opts.min_registered, math.ceil(opts.min_registered_fraction * total))
+    if registered < needed:
+        raise StageError(
+            STAGE,
+            f"only {registered} of {total} frames could be posed (at least {needed} are needed). "
+            "Film slowly all around a textured object, keeping it in view, with good light.",
+            "registration",
+        )
+    warnings = []
+    if registered < opts.good_registered_fraction * total:
+        warnings.append(f"only {registered} of {total} frames registered: poses may be unreliable")
+
+    t = time.perf_counter()
+    progress(0.95, "undistorting frames")
+    undistortion = _undistort(model, model_dir, image_dir, undistorted_dir(data_dir), opts.undistort_threshold_px)
+    seconds["undistort"] = time.perf_counter() - t
+
+    camera = next(iter(model.cameras.values()))
+    figures: dict[str, Any] = {
+        "frames_total": total,
+        "frames_registered": registered,
+        "reprojection_error_px": round(float(model.compute_mean_reprojection_error()), 4),
+        "points": model.num_points3D(),
+        "mean_track_length": round(float(model.compute_mean_track_length()), 3),
+        "models": n_models,
+        "pairs_matched": n_pairs,
+        "camera": {"model": camera.model_name, "width": camera.width, "height": camera.height,
+                   "params": [round(float(p), 6) for p in camera.params]},
+        **undistortion,
+    }
+    if warnings:
+        figures["warnings"] = warnings
+    record = update_capture_json(data_dir, seconds=seconds, pose_options=opts.model_dump(), **figures)
+    write_json_atomic(work / "poses.json", {"model_dir": str(model_dir.relative_to(work)), **figures,
+                                            "seconds": {k: round(v, 3) for k, v in seconds.items()}})
+    progress(1.0, f"registered {registered}/{total} frames, {figures['reprojection_error_px']:.2f} px",
+             frames_registered=registered, frames_total=total)
+    return {**figures, "seconds": record["seconds"]}
