@@ -8,6 +8,7 @@ counting bytes: past ``max_upload_mb`` the request ends with 413 and the partial
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query, Request, Response
@@ -52,7 +53,7 @@ OwnerDep = Annotated[str | None, Depends(get_owner)]
 class _UploadSink:
     """Callbacks for python-multipart: the ``file`` part into a file (size-capped), other parts as fields."""
 
-    def __init__(self, path, limit: int) -> None:  # noqa: ANN001 - a Path
+    def __init__(self, path: Path, limit: int) -> None:
         self.path, self.limit = path, limit
         self.file_bytes = 0
         self.filename: str | None = None

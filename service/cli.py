@@ -10,10 +10,15 @@ import logging
 import os
 import shutil
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
+
+if TYPE_CHECKING:  # the commands import what they need when they run: `neudf --help` stays fast
+    from service.settings import Settings
+    from worker.pipeline import JobOptions
 
 MESH_SUFFIXES = (".glb", ".ply", ".obj")
 
@@ -23,7 +28,7 @@ def _fail(message: str, code: int = 2) -> typer.Exit:
     return typer.Exit(code)
 
 
-def _settings(**overrides: Any):  # noqa: ANN202 - a Settings
+def _settings(**overrides: Any) -> Settings:
     from pydantic import ValidationError
 
     from service.settings import Settings
@@ -80,6 +85,7 @@ def reconstruct(
     mesh_resolution: Annotated[int | None, typer.Option(help="Grid resolution of mesh extraction.")] = None,
     mesh_method: Annotated[str | None, typer.Option(help="meshudf, spsr or mc.")] = None,
     mesh_threshold: Annotated[float | None, typer.Option(help="UDF level under which a face counts as surface.")] = None,
+    mesh_min_faces: Annotated[int | None, typer.Option(help="Connected pieces with fewer faces are dropped (default 32).")] = None,
 ) -> None:
     """Run the whole pipeline on a video without a service: frames, poses, training, mesh, export."""
     from pydantic import ValidationError
@@ -98,7 +104,8 @@ def reconstruct(
         raise _fail(f"{video.name}: {exc.message}") from None
     try:
         options = JobOptions(preset=preset, iters=iters, frames=frames, mesh_resolution=mesh_resolution,
-                             mesh_method=mesh_method, mesh_threshold=mesh_threshold)
+                             mesh_method=mesh_method, mesh_threshold=mesh_threshold,
+                             mesh_min_faces=mesh_min_faces)
     except ValidationError as exc:
         first = exc.errors()[0]
         raise _fail(f"{'.'.join(map(str, first['loc']))}: {first['msg']}") from None
@@ -123,7 +130,8 @@ def reconstruct(
     typer.echo(f"wrote {out} (stage outputs in {work})", err=True)
 
 
-def _run_with_bar(run_pipeline, video: Path, job_dir: Path, options, device: str) -> None:  # noqa: ANN001
+def _run_with_bar(run_pipeline: Callable[..., Any], video: Path, job_dir: Path, options: JobOptions,
+                  device: str) -> None:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     columns = (TextColumn("[bold]{task.fields[stage]:<7}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
@@ -155,17 +163,13 @@ def register(app: typer.Typer) -> None:
 
 
 def build_app() -> typer.Typer:
+    import neudf_core.cli
+    import worker.cli
+
     app = typer.Typer(name="neudf", help="NeUDF: phone video in, open-surface mesh out.", no_args_is_help=True,
                       pretty_exceptions_enable=False, add_completion=False)
-    import importlib
-
-    for module in ("neudf_core.cli", "worker.cli"):
-        # Until every layer's CLI has landed, a missing one must not take the others down.
-        try:
-            importlib.import_module(module).register(app)
-        except ModuleNotFoundError as exc:
-            if exc.name != module:
-                raise
+    neudf_core.cli.register(app)
+    worker.cli.register(app)
     register(app)
     return app
 

@@ -82,16 +82,15 @@ class EmbeddedWorker:
         process = self.process
         if process is None or process.poll() is not None:
             return
-        for sig, wait_s in ((signal.SIGTERM, self.stop_grace_s), (signal.SIGKILL, 5.0)):
-            try:
-                os.killpg(process.pid, sig)
-            except ProcessLookupError:
-                return
-            try:
-                process.wait(wait_s)
-                break
-            except subprocess.TimeoutExpired:
-                continue
+        # SIGTERM to the worker itself (a warm shutdown: it stops its pool), SIGKILL to the group if it hangs.
+        try:
+            os.kill(process.pid, signal.SIGTERM)
+            process.wait(self.stop_grace_s)
+        except ProcessLookupError:
+            pass
+        except subprocess.TimeoutExpired:
+            log.warning("embedded worker still busy after %.0f s; killing it (its job resumes next start)",
+                        self.stop_grace_s)
         # The pool children share the group; make sure none outlives the worker.
         try:
             os.killpg(process.pid, signal.SIGKILL)

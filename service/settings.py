@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 from functools import lru_cache
+from pathlib import Path
 from typing import Annotated
 
 from pydantic import Field, field_validator
@@ -47,7 +48,7 @@ class Settings(QueueSettings):
         return int(self.max_upload_mb * 1024 * 1024)
 
     @property
-    def uploads_dir(self):  # noqa: ANN201 - a Path
+    def uploads_dir(self) -> Path:
         return self.root / "uploads"
 
     @property

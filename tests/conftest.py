@@ -49,10 +49,11 @@ def neudf_env(data_dir: Path, **extra: str) -> dict[str, str]:
     return env
 
 
-def _stop_group(process: subprocess.Popen, sig: int = signal.SIGTERM, wait_s: float = 20) -> None:
+def _stop_group(process: subprocess.Popen, wait_s: float = 20) -> None:
+    """SIGTERM to the leader (a warm shutdown stops its own children), then SIGKILL to what is left."""
     if process.poll() is None:
         try:
-            os.killpg(process.pid, sig)
+            process.terminate()
             process.wait(wait_s)
         except (ProcessLookupError, subprocess.TimeoutExpired):
             pass

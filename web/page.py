@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import html
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -162,7 +163,7 @@ def build_page(service: JobService) -> gr.Blocks:
         same_job = shown.get("job") == job.id
         same_files = same_job and shown.get("artifacts") == signature["artifacts"]
 
-        def keep_or(value_fn):  # noqa: ANN001, ANN202
+        def keep_or(value_fn: Callable[[], Any]) -> Any:
             return gr.skip() if same_files else value_fn()
 
         frames = keep_or(lambda: [_serve_copy(p, job.id) for p in service.frames(job.id, owner)] or None)

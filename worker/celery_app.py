@@ -73,7 +73,7 @@ class QueueSettings(BaseSettings):
 
     @property
     def resolved_broker_url(self) -> str:
-        return self.broker_url or "filesystem://"
+        return self.broker_url or "filesystem://localhost//"
 
     @property
     def broker_folders(self) -> dict[str, Path]:

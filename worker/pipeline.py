@@ -153,8 +153,9 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
             mesh = mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress, **kwargs)
         else:
             mesh = _mesh_keeping_small_pieces(ctx, ctx.options.mesh_min_faces, progress, **kwargs)
-    except ValueError as exc:  # no surface found: say what the user can change
-        raise StageError("mesh", f"{exc}. Train longer (more iterations) or raise mesh_threshold.") from exc
+    except ValueError as exc:  # a field without a surface, a method that does not fit the field, ...
+        hint = ". Train longer (more iterations) or raise mesh_threshold." if "no surface" in str(exc) else ""
+        raise StageError("mesh", f"{exc}{hint}") from exc
     info = mesh.metadata.get("meshing", {})
     return {f"mesh_{k}": info[k] for k in ("method", "resolution", "threshold") if k in info}
 
@@ -199,15 +200,26 @@ class Stage:
     outputs: Callable[[JobContext], list[Path]]
     # Folders that belong to this stage alone: cleared when an earlier stage had to run again.
     owns: Callable[[JobContext], list[Path]] = field(default=lambda ctx: [])
+    # The options its outputs depend on: a finished stage run with other values is run again, from scratch
+    # unless only ``resumable`` ones changed (more iterations continue a run).
+    keys: tuple[str, ...] = ()
+    resumable: tuple[str, ...] = ()
+
+    def options_used(self, ctx: JobContext) -> dict[str, Any]:
+        return {k: getattr(ctx.options, k) for k in self.keys}
 
 
 STAGES: tuple[Stage, ...] = (
-    Stage("frames", 0.04, _frames, lambda c: [c.data_dir / "image", c.data_dir / "frames.json"]),
+    Stage("frames", 0.04, _frames, lambda c: [c.data_dir / "image", c.data_dir / "frames.json"],
+          keys=("frames", "max_size")),
     Stage("poses", 0.16, _poses, lambda c: [c.data_dir / "colmap" / "poses.json"]),
     Stage("scene", 0.02, _scene, lambda c: [c.data_dir / "cameras_sphere.npz"]),
+    # Not cleared when train itself runs again: the trainer resumes from its checkpoint (or goes on to more
+    # iterations of the same configuration).
     Stage("train", 0.65, _train, lambda c: [c.run_dir / "config.json", c.run_dir / "metrics.jsonl"],
-          owns=lambda c: [c.run_dir]),
-    Stage("mesh", 0.10, _mesh, lambda c: [c.mesh_file], owns=lambda c: [c.mesh_file.parent]),
+          owns=lambda c: [c.run_dir], keys=("preset", "iters"), resumable=("iters",)),
+    Stage("mesh", 0.10, _mesh, lambda c: [c.mesh_file], owns=lambda c: [c.mesh_file.parent],
+          keys=("mesh_method", "mesh_resolution", "mesh_threshold", "mesh_min_faces")),
     Stage("export", 0.03, _export, lambda c: [c.export_dir / "mesh.glb", c.export_dir / "metrics.json"],
           owns=lambda c: [c.export_dir / n for n in ("mesh.glb", "mesh.ply", "preview.png", "loss.png", "metrics.json")]),
 )
@@ -219,7 +231,26 @@ def _marker(job_dir: Path, name: str) -> Path:
 
 
 def _is_complete(stage: Stage, ctx: JobContext) -> bool:
-    return _marker(ctx.job_dir, stage.name).is_file() and all(p.exists() for p in stage.outputs(ctx))
+    marker = _marker(ctx.job_dir, stage.name)
+    if not marker.is_file() or not all(p.exists() for p in stage.outputs(ctx)):
+        return False
+    try:
+        return json.loads(marker.read_text()).get("options", {}) == stage.options_used(ctx)
+    except ValueError:
+        return False
+
+
+def _changed_beyond_resumable(stage: Stage, ctx: JobContext) -> bool:
+    """Whether this stage last finished with other values of options its outputs cannot be resumed under."""
+    marker = _marker(ctx.job_dir, stage.name)
+    if not marker.is_file():
+        return False  # never finished (or interrupted): its partial outputs are there to resume from
+    try:
+        before = json.loads(marker.read_text()).get("options", {})
+    except ValueError:
+        return True
+    now = stage.options_used(ctx)
+    return any(before.get(k) != now[k] for k in stage.keys if k not in stage.resumable)
 
 
 def _write_marker(job_dir: Path, name: str, record: dict[str, Any]) -> None:
@@ -271,6 +302,9 @@ def run_pipeline(video: str | Path, job_dir: str | Path, options: JobOptions | N
                 for path in later.owns(ctx):
                     _remove(path)
             must_run = True
+        if _changed_beyond_resumable(stage, ctx):
+            for path in stage.owns(ctx):
+                _remove(path)
         _remove(_marker(ctx.job_dir, stage.name))
         metrics.update(_run_stage(stage, ctx, progress, start, end))
         start = end
@@ -294,7 +328,8 @@ def _run_stage(stage: Stage, ctx: JobContext, progress: ProgressFn, start: float
     except Exception as exc:  # anything else still names its stage
         raise StageError(stage.name, f"{type(exc).__name__}: {exc}") from exc
     seconds = round(time.perf_counter() - t0, 3)
-    _write_marker(ctx.job_dir, stage.name, {"finished_at": time.time(), "seconds": seconds, "metrics": figures})
+    _write_marker(ctx.job_dir, stage.name, {"finished_at": time.time(), "seconds": seconds, "metrics": figures,
+                                            "options": stage.options_used(ctx)})
     progress(end, f"{stage.name}: done in {seconds:.1f} s", stage=stage.name, stage_progress=1.0, event="done",
              seconds=seconds, metrics=figures)
     return figures

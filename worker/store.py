@@ -21,6 +21,7 @@ from typing import Any
 from pydantic import BaseModel
 from sqlalchemy import JSON, Boolean, DateTime, Float, Integer, String, create_engine, event, func, select, update
 from sqlalchemy.engine import Engine
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
@@ -154,7 +155,10 @@ class JobStore:
             _sqlite_immediate(engine)
         else:
             engine = create_engine(self.url, pool_pre_ping=True)
-        Base.metadata.create_all(engine)
+        try:
+            Base.metadata.create_all(engine)
+        except DBAPIError:  # another process created the tables between our check and our CREATE
+            Base.metadata.create_all(engine)
         return engine
 
     @property

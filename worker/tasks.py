@@ -19,6 +19,7 @@ import os
 import socket
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from celery import signals
@@ -42,7 +43,8 @@ def get_store(settings: QueueSettings) -> JobStore:
     return _stores[key]
 
 
-def find_input(job_dir) -> Any:  # noqa: ANN001 - a Path
+def find_input(job_dir: Path) -> Path | None:
+    """The job's uploaded video (input/video.<ext>)."""
     files = sorted((job_dir / "input").glob("video.*"))
     return files[0] if files else None
 
