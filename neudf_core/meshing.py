@@ -1,23 +1,35 @@
 """Meshes from neural distance fields: open surfaces from a UDF, closed ones from an SDF.
 
-A UDF has no sign, so marching cubes at 0 does not apply. Two ways around it, behind one function:
+A UDF has no sign, so marching cubes at 0 does not apply. Two ways around it, behind one function
+(:func:`extract_mesh`):
 
 - ``"meshudf"`` (Guillard et al. 2022): marching cubes on *pseudo-signs*. In each grid cell near the
   surface a corner is "+" when its UDF gradient agrees with the cell's reference gradient and "-" when it
-  points the other way (the surface lies between). Keeps thin open sheets as they are.
-- ``"spsr"`` (the NeUDF paper's "masked Poisson"): points are moved onto the zero level set along the
-  gradient, screened Poisson makes a watertight surface, and the faces where the UDF is not near zero
-  (the lids Poisson invents over open boundaries) are deleted.
+  points the other way (the surface lies between); cells whose gradients point at each other across a
+  sign change (a ridge of the UDF, not a surface) are rejected; faces whose vertices' UDF exceeds the
+  threshold are dropped. Keeps thin open sheets as they are, vertices on the zero level.
+- ``"spsr"`` (the NeUDF paper's "masked Poisson"): points near the surface are moved onto the zero
+  level set along the gradient, their unsigned normals oriented over a neighbourhood graph, screened
+  Poisson (open3d) makes a watertight surface per connected piece, and the faces where the UDF is not
+  near zero (the lids Poisson invents over openings) or the density is low are deleted.
 - ``"mc"``: plain marching cubes of a signed field at ``level`` (the NeuS-SDF baseline).
 
+A learned UDF is not an exact distance: it bottoms out above zero (softplus output) and its gradient is
+weak and noisy in a band around the surface. meshudf therefore widens MeshUDF's near-surface band by the
+threshold, estimates the floor from its vertices and undoes it before placing them, and gives corners
+with a weak gradient the gradient found half a voxel away (a cell-independent rule, so neighbouring cells
+agree on their pseudo-signs); pinholes that remain where the field is off are closed (``fill_holes``).
+Tests fit this on analytic UDFs, on a noisy floored one, and on an MLP fitted to a bowl.
+
 All three evaluate the field sparsely: a coarse pass over blocks of 8^3 cells discards empty space (a
-distance field cannot drop by more than the distance travelled), then only the kept blocks are evaluated
-at full resolution, in chunks, so memory stays bounded at resolution 512.
+distance field cannot drop by more than the distance travelled, see CULL_SAFETY), then only the kept
+blocks are evaluated at full resolution, in chunks, so memory stays bounded at resolution 512.
 
 Marching cubes is our own, vectorised over cells. Its table is not copied from anywhere: it is generated
 from first principles (walk the iso-contour around the cube's faces, fan-triangulate each loop), and the
 face ambiguities are resolved per cell with the asymptotic decider, which is invariant to flipping all
-signs -- a property pseudo-signs need, since each cell picks its own reference.
+signs -- a property pseudo-signs need, since each cell picks its own reference. (skimage's
+marching_cubes would need one call per cell for per-cell signs.)
 """
 
 from __future__ import annotations
@@ -36,6 +48,7 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
+from neudf_core.metrics import split_pinched_vertices
 from neudf_core.progress import ProgressFn, null_progress, sub_progress
 
 log = logging.getLogger(__name__)
@@ -61,6 +74,10 @@ NEAR_MAX_VOXELS = 1.74
 FACING_TOLERANCE = 0.5
 TIE_BREAK = np.array([0.267, 0.535, 0.802])  # a generic direction, for corners on the surface
 TRUSTED_GRAD = 0.3  # gradient norm (x the median) from which a corner votes in the gradient test
+WEAK_GRAD = 0.1  # gradient norm (x the median) under which a corner's own direction is not used
+# TIE_BREAK and two directions orthogonal to it (Gram-Schmidt): at least one is a fair way off any plane
+PROBE_DIRECTIONS = np.linalg.qr(np.array([TIE_BREAK, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]).T)[0].T
+PROBE_DIRECTIONS *= np.sign(PROBE_DIRECTIONS[0] @ TIE_BREAK)
 
 
 @dataclass(frozen=True)
@@ -499,44 +516,49 @@ def orient_faces(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return trimesh.Trimesh(mesh.vertices, faces, process=False)
 
 
-def fill_small_holes(mesh: trimesh.Trimesh, max_edges: int) -> trimesh.Trimesh:
-    """Close boundary loops of at most ``max_edges`` edges with a fan around the loop's centroid.
+def fill_small_holes(mesh: trimesh.Trimesh, max_perimeter: float) -> trimesh.Trimesh:
+    """Close boundary loops no longer than ``max_perimeter`` with a fan around their centroid.
 
-    A learned UDF's noisy gradients leave a few pinholes (5 to 12 edges in our noisy test bowl) where
-    neighbouring cells disagree on a pseudo-sign; a real opening of the object spans many more voxels.
-    Expects consistent winding: each boundary edge a -> b of a face gets the triangle (b, a, centre).
+    Where a learned UDF is off by more than a voxel, neighbouring cells can disagree on a pseudo-sign
+    and leave a pinhole of a few voxels (an MLP fitted to a bowl: 1 at resolution 256, ~60 at 512);
+    a real opening of a garment is far longer. Loops are traced per fan of faces (a pinhole touching
+    another at a vertex is two loops). Expects consistent winding: each boundary edge a -> b of a face
+    gets the triangle (b, a, centre).
     """
-    if max_edges < 3 or len(mesh.faces) == 0:
+    if max_perimeter <= 0 or len(mesh.faces) == 0:
         return mesh
-    faces = mesh.faces
-    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    faces = np.asarray(mesh.faces)
+    wedges = split_pinched_vertices(faces)  # per-fan vertex ids
+    vertex_of = np.empty(wedges.max() + 1, np.int64)
+    vertex_of[wedges.reshape(-1)] = faces.reshape(-1)
+    directed = np.concatenate([wedges[:, [0, 1]], wedges[:, [1, 2]], wedges[:, [2, 0]]])
     _, inverse, counts = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True, return_counts=True)
     boundary = directed[counts[inverse.reshape(-1)] == 1]
     if len(boundary) == 0:
         return mesh
-    verts, local = np.unique(boundary, return_inverse=True)
+    ids, local = np.unique(boundary, return_inverse=True)
     local = local.reshape(-1, 2)
-    n = len(verts)
+    n = len(ids)
     graph = coo_matrix((np.ones(len(local)), (local[:, 0], local[:, 1])), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
     edge_label = labels[local[:, 0]]
-    n_edges = np.bincount(edge_label)
-    n_verts = np.bincount(labels)
-    small = (n_edges <= max_edges) & (n_edges == n_verts)  # a simple loop (no pinched vertex)
+    n_edges, n_ids = np.bincount(edge_label), np.bincount(labels)
+    ends = vertex_of[boundary]  # back to the mesh's vertices
+    lengths = np.linalg.norm(mesh.vertices[ends[:, 0]] - mesh.vertices[ends[:, 1]], axis=1)
+    perimeter = np.bincount(edge_label, weights=lengths)
+    small = (perimeter <= max_perimeter) & (n_edges == n_ids)  # a simple loop
     if not small.any():
         return mesh
     holes = np.nonzero(small)[0]
     centre_of = np.full(len(n_edges), -1)
     centre_of[holes] = len(mesh.vertices) + np.arange(len(holes))
     sums = np.zeros((len(n_edges), 3))
-    np.add.at(sums, labels, mesh.vertices[verts])
-    centres = sums[holes] / n_verts[holes, None]
+    np.add.at(sums, labels, mesh.vertices[vertex_of[ids]])
+    centres = sums[holes] / n_ids[holes, None]
     fill = small[edge_label]
-    new_faces = np.stack([boundary[fill, 1], boundary[fill, 0], centre_of[edge_label[fill]]], -1)
-    log.info("filled %d pinholes of at most %d edges", len(holes), max_edges)
-    return trimesh.Trimesh(
-        np.vstack([mesh.vertices, centres]), np.vstack([faces, new_faces]), process=False
-    )
+    new_faces = np.stack([ends[fill, 1], ends[fill, 0], centre_of[edge_label[fill]]], -1)
+    log.info("filled %d pinholes with perimeters up to %.3g", len(holes), max_perimeter)
+    return trimesh.Trimesh(np.vstack([mesh.vertices, centres]), np.vstack([faces, new_faces]), process=False)
 
 
 def drop_small_components(
@@ -570,7 +592,44 @@ def _no_surface(what: str, sparse: SparseGrid, bounds: Bounds) -> ValueError:
     )
 
 
-def pseudo_signs(vals: np.ndarray, grads: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+def probe_weak_gradients(
+    udf_fn: FieldFn, grad_fn: GradFn | None, points: np.ndarray, grads: np.ndarray, voxel: float,
+    chunk: int, device: torch.device | str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Replace the gradients of grid points that sit in the UDF's flat band by a probe's.
+
+    Near its zero level a learned UDF flattens out (softplus floor, smoothed cusp): there the gradient is
+    weak and its direction noise, so two cells sharing such a corner can give it contradicting
+    pseudo-signs, which leaves a pinhole (seen in a noisy test bowl and an MLP fitted to it). Such a point
+    is as good as on the surface, so we treat it as nudged half a voxel along a fixed generic direction:
+    it takes the gradient found there, which says on which side of the surface the nudge went. The rule
+    depends on the point alone, so every cell agrees. If the probe is weak too (the direction runs along
+    the surface), two more orthogonal directions are tried. Returns (gradients, which points were probed).
+    """
+    norm = np.linalg.norm(grads, axis=1)
+    strong = WEAK_GRAD * float(np.median(norm[np.isfinite(norm)])) if np.isfinite(norm).any() else 0.0
+    weak = ~(norm >= strong)  # also NaN
+    probed = weak.copy()
+    grads = grads.copy()
+    todo = np.nonzero(weak)[0]
+    for direction in PROBE_DIRECTIONS:
+        if len(todo) == 0:
+            break
+        probe = evaluate_gradient(udf_fn, points[todo] + 0.5 * voxel * direction, grad_fn=grad_fn,
+                                  step=voxel / 4, chunk=chunk, device=device)
+        ok = np.linalg.norm(probe, axis=1) >= strong
+        grads[todo[ok]] = probe[ok]
+        todo = todo[~ok]
+    if len(todo):
+        grads[todo] = 0.0  # still nothing: pseudo_signs falls back to the fixed tie-break
+    log.info("meshudf: %d of %d corner gradients weak (< %.2f x median), probed", int(weak.sum()), len(norm),
+             WEAK_GRAD)
+    return grads, probed
+
+
+def pseudo_signs(
+    vals: np.ndarray, grads: np.ndarray, voxel: float, trusted: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """MeshUDF's per-cell signs: (M, 8) +-1 and (M,) whether the cell passes the gradient test.
 
     ``vals`` (M, 8) UDF and ``grads`` (M, 8, 3) gradients at each cell's corners. A corner is "+" when its
@@ -595,7 +654,8 @@ def pseudo_signs(vals: np.ndarray, grads: np.ndarray, voxel: float) -> tuple[np.
     # A sign change a -> b is believed unless a gradient points clearly towards the other corner (a
     # ridge of the UDF between two surfaces, not a surface). Only strong gradients vote: in the band
     # where a learned UDF flattens out at its floor, the gradient's direction is noise.
-    trusted = norm >= TRUSTED_GRAD * np.median(norm)
+    strong = norm >= TRUSTED_GRAD * np.median(norm)
+    trusted = strong if trusted is None else strong & trusted
     facing = np.isfinite(far[rows, far.argmax(1)])  # a cell with no reliable corner has no reference
     for a, b, ax in EDGES:
         change = sign[:, a] != sign[:, b]
@@ -606,7 +666,7 @@ def pseudo_signs(vals: np.ndarray, grads: np.ndarray, voxel: float) -> tuple[np.
 
 def _meshudf(
     udf_fn: FieldFn, grad_fn: GradFn | None, sparse: SparseGrid, threshold: float, bounds: Bounds,
-    chunk: int, device: torch.device | str, progress: ProgressFn, fill_hole_edges: int,
+    chunk: int, device: torch.device | str, progress: ProgressFn,
 ) -> trimesh.Trimesh:
     grid, h = sparse.grid, sparse.grid.voxel
     cells, vals = cell_corners(sparse)
@@ -626,11 +686,15 @@ def _meshudf(
         raise _no_surface("no grid cell lies within a voxel of the UDF's zero level", sparse, bounds)
     pids = grid.point_id(cells[:, None, :] + CORNERS[None])  # (M, 8)
     unique, inverse = np.unique(pids, return_inverse=True)
+    points = grid.position(grid.point_index(unique))
     grads = evaluate_gradient(
-        udf_fn, grid.position(grid.point_index(unique)), grad_fn=grad_fn, step=h / 4, chunk=chunk,
-        device=device, progress=sub_progress(progress, 0.0, 0.7),
+        udf_fn, points, grad_fn=grad_fn, step=h / 4, chunk=chunk, device=device,
+        progress=sub_progress(progress, 0.0, 0.65),
     )
-    sign, facing = pseudo_signs(vals, grads[inverse.reshape(-1)].reshape(-1, 8, 3), h)
+    grads, probed = probe_weak_gradients(udf_fn, grad_fn, points, grads, h, chunk, device)
+    sign, facing = pseudo_signs(
+        vals, grads[inverse.reshape(-1)].reshape(-1, 8, 3), h, ~probed[inverse.reshape(-1)].reshape(-1, 8)
+    )
     log.info(
         "meshudf: %d near-surface cells, %d rejected by the gradient test", len(cells), int((~facing).sum())
     )
@@ -657,7 +721,7 @@ def _meshudf(
     if not keep.any():
         raise _no_surface(f"no face has UDF <= threshold {threshold:.4g} at its vertices", sparse, bounds)
     mesh = _clean(vertices, faces[keep], tol=1e-6 * h)
-    return fill_small_holes(orient_faces(mesh), fill_hole_edges)
+    return orient_faces(mesh)
 
 
 def _spsr(
@@ -791,18 +855,22 @@ def extract_mesh(
     chunk: int = 65536,
     min_component_faces: int = 32,
     min_component_fraction: float = 0.01,
-    fill_hole_edges: int = 16,
+    fill_holes: float | None = None,
     level: float = 0.0,
     device: torch.device | str = "cpu",
     progress: ProgressFn = null_progress,
 ) -> trimesh.Trimesh:
     """A mesh of the zero level set of ``udf_fn`` (or of its ``level`` set for ``method="mc"``).
 
-    ``udf_fn`` maps (N, 3) float32 points on ``device`` to (N,) values; it is called in chunks of
-    ``chunk`` points. ``resolution`` cells span the longest side of ``bounds``. ``threshold``: see
-    :func:`default_threshold` (it is logged and stored in ``mesh.metadata["meshing"]``). Connected
-    pieces smaller than max(min_component_faces, min_component_fraction x faces) are dropped; meshudf
-    closes pinholes of at most ``fill_hole_edges`` boundary edges (0: none). The mesh is
+    ``udf_fn`` maps (N, 3) float32 points on ``device`` to (N,) values; it is called under no_grad in
+    chunks of ``chunk`` points. Gradients (meshudf, spsr) come from ``grad_fn`` when given, else from
+    autograd through ``udf_fn`` (exact, about two forward passes), else -- for a callable autograd cannot
+    see through -- from central differences (see :func:`evaluate_gradient`). ``resolution`` cells span
+    the longest side of ``bounds``. ``threshold``: the UDF value that counts as surface, see
+    :func:`default_threshold` (logged and stored in ``mesh.metadata["meshing"]``; mc takes none). Connected
+    pieces smaller than max(min_component_faces, min_component_fraction x faces) are dropped. Holes with
+    a perimeter up to ``fill_holes`` are closed (pinholes where the field is off; default: the larger of
+    3% of the longest side of ``bounds`` and 8 voxels; 0 keeps every hole). The mesh is
     in the coordinates of the queried points. Raises ValueError when the field has no surface in bounds.
     """
     if method not in ("meshudf", "spsr", "mc"):
@@ -833,18 +901,22 @@ def extract_mesh(
         )
     stage = sub_progress(progress, 0.4, 0.95)
     if method == "meshudf":
-        mesh = _meshudf(udf_fn, grad_fn, sparse, threshold, bounds, chunk, device, stage, fill_hole_edges)
+        mesh = _meshudf(udf_fn, grad_fn, sparse, threshold, bounds, chunk, device, stage)
     elif method == "spsr":
         mesh = _spsr(udf_fn, grad_fn, sparse, threshold, bounds, chunk, device, stage)
     else:
         mesh = _mc(sparse, level, bounds)
+    if method != "mc":
+        if fill_holes is None:
+            fill_holes = max(0.03 * float(np.max(np.subtract(bounds[1], bounds[0]))), 8 * grid.voxel)
+        mesh = fill_small_holes(mesh, fill_holes)
     mesh = drop_small_components(mesh, min_component_faces, min_component_fraction)
     if len(mesh.faces) == 0:
         raise ValueError("no surface left after dropping small components: every piece was below "
                          f"max({min_component_faces} faces, {min_component_fraction:.0%} of faces)")
     mesh.metadata["meshing"] = {
         "method": method, "resolution": resolution, "voxel": grid.voxel, "threshold": threshold,
-        "threshold_source": source, "level": level if method == "mc" else None,
+        "threshold_source": source, "level": level if method == "mc" else None, "fill_holes": fill_holes,
         "bounds": [list(map(float, bounds[0])), list(map(float, bounds[1]))],
     }
     log.info("mesh: %d vertices, %d faces", len(mesh.vertices), len(mesh.faces))
@@ -889,13 +961,16 @@ def mesh_run(
     method: Method = "meshudf",
     resolution: int = 256,
     threshold: float | None = None,
+    min_component_faces: int = 32,
+    min_component_fraction: float = 0.01,
     device: str = "cpu",
     progress: ProgressFn = null_progress,
 ) -> trimesh.Trimesh:
     """Mesh a trained run: UDF in the unit sphere's bounding box, vertex colours, exported to ``out_path``.
 
-    The suffix of ``out_path`` picks the format (.glb, .ply, .obj); raises ValueError for others, and
-    before the long work starts.
+    The suffix of ``out_path`` picks the format (.glb, .ply, .obj); raises ValueError for others before
+    the long work starts, for a method that does not fit the field (mc for NeuS-SDF runs, meshudf or spsr
+    for unsigned ones), and when the field has no surface yet. Options as :func:`extract_mesh`.
     """
     from neudf_core.export import SUFFIXES, export_mesh
     from neudf_core.trainer import load_model
@@ -915,7 +990,8 @@ def mesh_run(
 
     mesh = extract_mesh(
         model.udf, method=method, resolution=resolution, bounds=UNIT_BOUNDS, threshold=threshold,
-        grad_fn=grad_fn, device=device, progress=sub_progress(progress, 0.0, 0.9),
+        grad_fn=grad_fn, min_component_faces=min_component_faces, min_component_fraction=min_component_fraction,
+        device=device, progress=sub_progress(progress, 0.0, 0.9),
     )
     color_vertices(mesh, model.color, device=device, progress=sub_progress(progress, 0.9, 0.98))
     export_mesh(mesh, out_path)

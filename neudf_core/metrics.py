@@ -25,22 +25,55 @@ def _merged_faces(mesh: trimesh.Trimesh) -> np.ndarray:
     vertices = np.asarray(mesh.vertices, np.float64)
     if len(vertices) == 0:
         return np.zeros((0, 3), np.int64)
-    tol = 1e-8 * max(float(np.ptp(vertices, axis=0).max()), 1e-12)
+    tol = 1e-7 * max(float(np.ptp(vertices, axis=0).max()), 1e-12)
     _, inverse = np.unique(np.round(vertices / tol).astype(np.int64), axis=0, return_inverse=True)
     faces = inverse.reshape(-1)[np.asarray(mesh.faces, np.int64)]
     ok = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     return faces[ok]
 
 
+def split_pinched_vertices(faces: np.ndarray) -> np.ndarray:
+    """Give each fan of faces around a vertex its own vertex id (a "pinched" vertex joins several).
+
+    Corners of faces ("wedges") at the same vertex are joined when their faces share an edge through
+    that vertex; each group of joined wedges becomes one vertex. A boundary that touches itself at one
+    vertex then reads as the one opening it is, as a half-edge structure would trace it.
+    """
+    n_faces = len(faces)
+    wedge_a = np.arange(3 * n_faces)
+    wedge_b = (wedge_a // 3) * 3 + (wedge_a % 3 + 1) % 3  # edge k of face f runs from corner k to k + 1
+    a, b = faces.reshape(-1), faces.reshape(-1)[wedge_b]
+    _, group = np.unique(np.sort(np.stack([a, b], -1), axis=1), axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    order = np.argsort(group, kind="stable")
+    first = np.empty(group.max() + 1, np.int64)
+    first[group[order[::-1]]] = order[::-1]  # the first half-edge of each edge group
+    ref = first[group]
+    other = ref != wedge_a
+    i, r = wedge_a[other], ref[other]
+    same = a[i] == a[r]  # same direction (inconsistent winding) or opposite
+    join_a = np.where(same, wedge_a[r], wedge_b[r])  # the wedge of r at vertex a[i]
+    join_b = np.where(same, wedge_b[r], wedge_a[r])  # the wedge of r at vertex b[i]
+    rows = np.concatenate([wedge_a[i], wedge_b[i]])
+    cols = np.concatenate([join_a, join_b])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * n_faces, 3 * n_faces))
+    _, labels = connected_components(graph, directed=False)
+    return labels.reshape(-1, 3)
+
+
 def boundary_loops(mesh: trimesh.Trimesh) -> int:
     """Closed loops of boundary edges (edges used by exactly one face); 0 for a watertight mesh.
 
-    Counted as the cycle rank of the boundary-edge graph (edges - vertices + pieces), so two loops that
-    touch at one vertex still count as two. Vertices are merged by position first.
+    Vertices are merged by position first (OBJ and GLB files split them at UV seams), then pinched
+    vertices are split per fan of faces, so a loop that touches itself or another at one vertex (common
+    on the jagged rim of a mesh cut out of a distance field) is traced as a half-edge structure would;
+    two faces meeting only at a vertex still have two loops. Counted as the cycle rank of the
+    boundary-edge graph (edges - vertices + pieces).
     """
     faces = _merged_faces(mesh)
     if len(faces) == 0:
         return 0
+    faces = split_pinched_vertices(faces)
     edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
     unique, counts = np.unique(edges, axis=0, return_counts=True)
     boundary = unique[counts == 1]

@@ -101,6 +101,18 @@ def test_boundary_loops_count_closed_loops_of_boundary_edges():
     split = trimesh.Trimesh(sheet.vertices[sheet.faces].reshape(-1, 3), np.arange(3 * len(sheet.faces)).reshape(-1, 3),
                             process=False)
     assert boundary_loops(split) == 1
+    # a hole that touches the rim at one vertex is a notch of the rim: one opening, not two
+    sheet = unit_sheet(4)
+    rim_vertex = 2  # (x, y) = (0.5, 0): on the edge y = 0
+    notch = [i for i, f in enumerate(sheet.faces)
+             if rim_vertex in f and all(np.isin(sheet.vertices[v, 1], [0.25]) for v in f if v != rim_vertex)]
+    assert len(notch) == 1
+    pinched = trimesh.Trimesh(sheet.vertices, np.delete(sheet.faces, notch, axis=0), process=False)
+    assert boundary_loops(pinched) == 1
+    inside = (sheet.vertices[:, :2] > 0).all(1) & (sheet.vertices[:, :2] < 1).all(1)
+    interior = [i for i, f in enumerate(sheet.faces) if inside[f].all()]
+    holed = trimesh.Trimesh(sheet.vertices, np.delete(sheet.faces, interior[:1], axis=0), process=False)
+    assert boundary_loops(holed) == 2
     # two loops touching at one vertex are two loops
     bowtie = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0]],
                              [[0, 1, 2], [0, 3, 4]], process=False)
