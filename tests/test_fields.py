@@ -28,7 +28,7 @@ def test_signed_network_starts_as_a_sphere_sdf():
     net = UDFNetwork(init_radius=0.5, signed=True)
     inside, _ = net(torch.zeros(1, 3))
     outside, _ = net(torch.tensor([[0.9, 0.0, 0.0]]))
-    assert float(inside) < 0 < float(outside)
+    assert float(inside.detach()) < 0 < float(outside.detach())
 
 
 def test_hash_grid_is_continuous_and_uses_dense_and_hashed_levels():

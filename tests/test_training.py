@@ -162,6 +162,7 @@ def test_help_explains_every_option():
 
 def test_fast_preset_learns_the_scene(sheet_scene, tmp_path):
     run = tmp_path / "run"
+    # The same reduced sampling as the quick test; each CPU step is dearer (hash-grid gathers).
     overrides = {"data": {"white_background": True}, "log": {"log_every": 10},
                  "optim": {"rays": 128}, "sampler": {"n_coarse": 24, "n_importance": 16}}
     train(sheet_scene, run, preset="fast", iters=120, overrides=overrides)
