@@ -24,7 +24,7 @@ from worker.errors import StageError
 from worker.stages import frames as frames_stage
 from worker.stages import poses as poses_stage
 from worker.stages.frames import VideoLimits, extract_frames, probe_video
-from worker.stages.poses import PoseOptions, estimate_poses, image_pairs
+from worker.stages.poses import PoseOptions, estimate_poses, image_pairs, jump_indices
 from worker.stages.scene import axes_point, up_direction, upright_rotation
 
 ORBIT_RADIUS = 3.0
@@ -200,6 +200,7 @@ def test_most_frames_register_and_unregistered_ones_are_dropped(captured):
     indices = {e["frame_index"] for e in captured["entries"]}
     assert not indices & set(range(NOISE_AT, NOISE_AT + N_NOISE))  # ...nor kept in image/ and frames.json
     assert capture["reprojection_error_px"] < 1.0
+    assert capture["pose_jumps"] == 0
     n = capture["frames_total"]
     assert capture["pairs_matched"] < n * (n - 1) / 2  # a video is matched sequentially, not all pairs
 
@@ -212,7 +213,7 @@ def test_cameras_agree_with_the_truth_up_to_a_similarity(captured):
     rms_centre = np.sqrt(np.mean(errors["centre_err"] ** 2))
     assert rms_centre < 0.01 * ORBIT_RADIUS
     true_focal = synthetic.intrinsics(320, 240, 50.0)[0, 0]
-    assert abs(captured["K"][:, 0, 0].mean() / true_focal - 1) < 0.03
+    assert abs(captured["K"][:, 0, 0].mean() / true_focal - 1) < 0.05  # focal length and distortion trade off
 
 
 @pytest.mark.slow
@@ -426,6 +427,16 @@ def test_image_pairs_sequential_with_loop_closure():
     assert (0, 16) in pairs and (0, 128) in pairs  # doubling distances
     assert (0, 199) in pairs and (5, 195) in pairs  # the end of the walk-around meets its start
     assert len(pairs) < 200 * 199 / 2 / 5
+
+
+def test_pose_jumps_find_a_mirrored_stretch_of_video():
+    c2w = np.stack([c.c2w for c in synthetic.orbit_cameras(60, 3.0)])
+    w2c, centres = np.transpose(c2w[:, :3, :3], (0, 2, 1)), c2w[:, :3, 3].copy()
+    assert jump_indices(w2c, centres) == []
+    mirror = np.diag([-1.0, 1.0, 1.0])  # frames 20..39 registered mirrored through the x = 0 plane
+    centres[20:40] = centres[20:40] @ mirror
+    w2c[20:40] = mirror @ w2c[20:40] @ mirror
+    assert jump_indices(w2c, centres) == [19, 39]
 
 
 def test_axes_point_and_upright_rotation():

@@ -9,8 +9,13 @@ Steps, each reported through ``progress``:
    matched exhaustively. A video is matched sequentially: each frame with its ``overlap`` successors, with
    successors at power-of-two distances (as COLMAP's quadratic overlap), and, to close the loop of a
    walk-around, all pairs among ~``loop_keyframes`` frames spread over the video plus the first frames
-   against the last. (COLMAP's own loop detection needs a vocabulary tree file we do not ship.)
+   against the last. (COLMAP's own loop detection needs a vocabulary tree file we do not ship.) Far pairs
+   survive only with ``far_min_inliers`` inliers and a general (non-planar) geometry.
 3. Incremental mapping, with a callback per registered image for progress; the largest model is kept.
+   On repeated texture (floor tiles) a far pair can still be wrong and flip a stretch of the video to a
+   mirrored pose with a small reprojection error (seen on the real beer.mp4). A video's consecutive
+   frames must move smoothly, so a jump between them (:func:`jump_indices`) makes the stage drop every far
+   pair and map again from neighbours in time alone; jumps that remain are reported as a warning.
 4. Undistortion to a pinhole camera, because NeuS's ``world_mat`` is a pinhole projection. When the
    estimated distortion moves no pixel by more than ``undistort_threshold_px`` the frames are used as they
    are (no resampling blur) and the camera is rewritten as PINHOLE; otherwise pycolmap's
@@ -41,7 +46,9 @@ from neudf_core.progress import Cancelled, ProgressFn, null_progress, sub_progre
 from worker.errors import StageError
 from worker.stages.frames import read_frames_json, update_capture_json, write_json_atomic
 
-__all__ = ["STAGE", "PoseOptions", "estimate_poses", "is_done", "image_pairs", "colmap_dir", "undistorted_dir"]
+__all__ = ["STAGE", "PoseOptions", "estimate_poses", "is_done", "image_pairs", "pose_jumps", "jump_indices",
+           "colmap_dir",
+           "undistorted_dir"]
 
 STAGE = "poses"
 
@@ -58,6 +65,13 @@ class PoseOptions(BaseModel):
     exhaustive_below: int = Field(60, ge=0, description="Match all pairs when there are fewer frames than this.")
     overlap: int = Field(10, ge=1, description="Sequential matching: successors each frame is matched with.")
     loop_keyframes: int = Field(25, ge=0, description="Frames spread over the video matched all-against-all.")
+    doubling: bool = Field(True, description="Also match each frame with frames at doubling distances in time.")
+    far_min_inliers: int = Field(
+        60, ge=15, description="Pairs farther apart in time than `overlap` are kept only with this many inliers "
+        "and a general (non-planar) two-view geometry: repeated texture (floor tiles) fakes such pairs.")
+    max_jump_factor: float = Field(
+        10.0, gt=1, description="A step between consecutive frames this many times the median step (position) "
+        "or 45 degrees and this many median rotations is a pose jump; jumps trigger sequential-only mapping.")
     min_registered_fraction: float = Field(0.4, ge=0, le=1, description="Below this share of frames: failure.")
     good_registered_fraction: float = Field(0.8, ge=0, le=1, description="Below this share: a warning.")
     min_registered: int = Field(8, ge=2, description="Fewest registered frames, whatever the share.")
@@ -90,7 +104,8 @@ def is_done(data_dir: str | Path) -> bool:
 
 
 # -- pairs ---------------------------------------------------------------------------------------------
-def image_pairs(n: int, *, exhaustive_below: int = 60, overlap: int = 10, loop_keyframes: int = 25) -> list[tuple[int, int]]:
+def image_pairs(n: int, *, exhaustive_below: int = 60, overlap: int = 10, loop_keyframes: int = 25,
+                doubling: bool = True) -> list[tuple[int, int]]:
     """Index pairs (i < j) to match among ``n`` frames of a video, in a stable order."""
     if n < exhaustive_below:
         return [(i, j) for i in range(n) for j in range(i + 1, n)]
@@ -100,7 +115,7 @@ def image_pairs(n: int, *, exhaustive_below: int = 60, overlap: int = 10, loop_k
             if i + d < n:
                 pairs.add((i, i + d))
         d = 2 ** math.ceil(math.log2(overlap + 1))
-        while i + d < n:  # farther frames at doubling distances: bridges over a blurry stretch
+        while doubling and i + d < n:  # farther frames at doubling distances: bridges over a blurry stretch
             pairs.add((i, i + d))
             d *= 2
     n_keys = min(loop_keyframes, max(2, n // 4))  # short videos: fewer keyframes, not a near-exhaustive set
@@ -142,9 +157,10 @@ def _extract(db: Path, image_dir: Path, names: list[str], opts: PoseOptions, pro
     progress(1.0, f"SIFT features {len(names)}/{len(names)}")
 
 
-def _match(db: Path, work: Path, names: list[str], opts: PoseOptions, progress: ProgressFn) -> int:
+def _match(db: Path, work: Path, names: list[str], opts: PoseOptions,
+           progress: ProgressFn) -> list[tuple[int, int]]:
     pairs = image_pairs(len(names), exhaustive_below=opts.exhaustive_below, overlap=opts.overlap,
-                        loop_keyframes=opts.loop_keyframes)
+                        loop_keyframes=opts.loop_keyframes, doubling=opts.doubling)
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = opts.num_threads
     pair_file = work / "pairs.txt"
@@ -157,7 +173,62 @@ def _match(db: Path, work: Path, names: list[str], opts: PoseOptions, progress: 
                                    device=pycolmap.Device.cpu)
     pair_file.unlink(missing_ok=True)
     progress(1.0, f"matched {len(pairs)} pairs")
-    return len(pairs)
+    return pairs
+
+
+# Two-view configurations of a general 3-D scene (the database stores them as plain ints).
+_GENERAL_GEOMETRY = {int(pycolmap.TwoViewGeometryConfiguration.CALIBRATED),
+                     int(pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED)}
+
+
+def _drop_far_pairs(db: Path, names: list[str], pairs: list[tuple[int, int]], overlap: int,
+                    min_inliers: int | None) -> int:
+    """Remove the verified geometry of far-apart pairs: weak ones (``min_inliers``) or, with None, all.
+
+    Far pairs close loops, but on repeated texture (tiles, bricks) a wrong pair passes RANSAC as a
+    homography-like geometry and flips a stretch of the video to a mirrored pose. Neighbours in time are
+    kept whatever they look like.
+    """
+    dropped = 0
+    with contextlib.closing(pycolmap.Database.open(str(db))) as database:
+        ids = {im.name: im.image_id for im in database.read_all_images()}
+        for i, j in pairs:
+            if j - i <= overlap:
+                continue
+            a, b = ids[names[i]], ids[names[j]]
+            if not database.exists_two_view_geometry(a, b):
+                continue
+            geometry = database.read_two_view_geometry(a, b)
+            inliers = len(geometry.inlier_matches)
+            if inliers == 0:
+                continue
+            if min_inliers is None or inliers < min_inliers or int(geometry.config) not in _GENERAL_GEOMETRY:
+                database.delete_two_view_geometry(a, b)
+                dropped += 1
+    return dropped
+
+
+def pose_jumps(model: pycolmap.Reconstruction, factor: float = 10.0) -> list[tuple[str, str]]:
+    """Consecutive registered frames (by name, i.e. in time) whose poses are too far apart for a video."""
+    images = sorted((im for im in model.images.values() if im.has_pose), key=lambda im: im.name)
+    if len(images) < 4:
+        return []
+    w2c = np.stack([im.cam_from_world().rotation.matrix() for im in images])
+    centres = np.stack([np.asarray(im.projection_center()).reshape(3) for im in images])
+    return [(images[k].name, images[k + 1].name) for k in jump_indices(w2c, centres, factor)]
+
+
+def jump_indices(w2c: np.ndarray, centres: np.ndarray, factor: float = 10.0) -> list[int]:
+    """Indices k where the step from camera k to k+1 is a jump, not a phone's smooth motion.
+
+    A step many times the median step, or a turn of more than 45 degrees that is also many median turns,
+    means one side was registered wrongly (on repeated texture, often mirrored).
+    """
+    moves = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+    turns = np.degrees(np.arccos(np.clip((np.einsum("nij,nij->n", w2c[1:], w2c[:-1]) - 1) / 2, -1, 1)))
+    big_move = moves > factor * max(float(np.median(moves)), 1e-12)
+    big_turn = (turns > 45) & (turns > factor * max(float(np.median(turns)), 1e-6))
+    return [int(k) for k in np.flatnonzero(big_move | big_turn)]
 
 
 def _map(db: Path, image_dir: Path, sparse: Path, n_images: int, opts: PoseOptions,
@@ -276,12 +347,22 @@ def _estimate_poses(data_dir: Path, opts: PoseOptions, progress: ProgressFn) -> 
     seconds["features"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    n_pairs = _match(db, work, names, opts, sub_progress(progress, 0.3, 0.55))
+    pairs = _match(db, work, names, opts, sub_progress(progress, 0.3, 0.55))
+    video = len(names) >= opts.exhaustive_below  # matched as a sequence, with far pairs for loops
+    far_dropped = _drop_far_pairs(db, names, pairs, opts.overlap, opts.far_min_inliers) if video else 0
     seconds["matching"] = time.perf_counter() - t
 
     t = time.perf_counter()
     model, model_dir, n_models = _map(db, image_dir, work / "sparse", len(names), opts,
                                       sub_progress(progress, 0.55, 0.95))
+    jumps = pose_jumps(model, opts.max_jump_factor) if video else []
+    sequential_only = False
+    if jumps:  # a far pair misled the mapper: map again from neighbours in time alone
+        progress(0.75, f"poses jump between {len(jumps)} pairs of frames: mapping again without far pairs")
+        far_dropped += _drop_far_pairs(db, names, pairs, opts.overlap, None)
+        model, model_dir, n_models = _map(db, image_dir, work / "sparse_sequential", len(names), opts,
+                                          sub_progress(progress, 0.75, 0.95))
+        jumps, sequential_only = pose_jumps(model, opts.max_jump_factor), True
     seconds["mapping"] = time.perf_counter() - t
 
     total, registered = len(names), model.num_reg_images()
@@ -296,6 +377,9 @@ def _estimate_poses(data_dir: Path, opts: PoseOptions, progress: ProgressFn) -> 
     warnings = []
     if registered < opts.good_registered_fraction * total:
         warnings.append(f"only {registered} of {total} frames registered: poses may be unreliable")
+    if jumps:
+        warnings.append(f"camera poses jump between {len(jumps)} pairs of consecutive frames "
+                        f"({', '.join(f'{a}-{b}' for a, b in jumps[:3])}): parts of the capture may be misplaced")
 
     t = time.perf_counter()
     progress(0.95, "undistorting frames")
@@ -310,7 +394,10 @@ def _estimate_poses(data_dir: Path, opts: PoseOptions, progress: ProgressFn) -> 
         "points": model.num_points3D(),
         "mean_track_length": round(float(model.compute_mean_track_length()), 3),
         "models": n_models,
-        "pairs_matched": n_pairs,
+        "pairs_matched": len(pairs),
+        "far_pairs_dropped": far_dropped,
+        "sequential_only": sequential_only,
+        "pose_jumps": len(jumps),
         "camera": {"model": camera.model_name, "width": camera.width, "height": camera.height,
                    "params": [round(float(p), 6) for p in camera.params]},
         **undistortion,
