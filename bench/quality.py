@@ -7,8 +7,12 @@ scene, trains the three rendering weights with the same preset, iterations and o
 the ground truth in GT's unit sphere (neudf_core.metrics.evaluate). Prints one table and writes JSON
 under bench/results/.
 
-    .venv/bin/python bench/quality.py --preset quick --iters 1000            # CPU, hours for all meshes
-    .venv/bin/python bench/quality.py --preset fast --device cuda --views 64 --size 256
+Images are rendered at --size and trained at that size (the preset's downscaling is overridden): at
+96 px a pixel is 2% of the object and every method's error is about one pixel, which hides the
+differences the paper is about.
+
+    .venv/bin/python bench/quality.py                                        # CPU: quick, 2000 iterations, 192 px
+    .venv/bin/python bench/quality.py --preset fast --device cuda --views 64 --size 256 --iters 20000
     .venv/bin/python bench/quality.py --meshes diffavatar_tshirt --iters 5   # a smoke run
 """
 
@@ -62,13 +66,17 @@ def find_meshes(names: list[str] | None) -> list[Path]:
 def run_one(data: Path, run_dir: Path, weight: str, args: argparse.Namespace, gt: trimesh.Trimesh) -> dict[str, Any]:
     """Train one rendering weight, mesh it and evaluate it. Failures are recorded, not raised."""
     label, method = METHODS[weight]
-    overrides: dict[str, Any] = {"renderer": {"weight": weight}}
+    if method == "meshudf":
+        method = args.udf_mesh_method
+    overrides: dict[str, Any] = {"renderer": {"weight": weight}, "data": {}}
     if args.background == "white":
-        overrides["data"] = {"white_background": True}
+        overrides["data"]["white_background"] = True
+    overrides["data"]["max_size"] = args.max_size
     row: dict[str, Any] = {"weight": weight, "label": label, "mesh_method": method,
                            "boundary_loops_gt": boundary_loops(gt)}
     t0 = time.perf_counter()
-    result = train(data, run_dir, preset=args.preset, iters=args.iters, device=args.device, overrides=overrides)
+    result = train(data, run_dir, preset=args.preset, iters=args.iters or None, device=args.device,
+                   overrides=overrides)
     row.update(train_s=round(time.perf_counter() - t0, 1), iters=result["iters"], psnr=result.get("psnr"))
     t1 = time.perf_counter()
     try:
@@ -119,10 +127,14 @@ def _json_safe(value: Any) -> Any:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="quick", help="quick (CPU), fast or paper (GPU)")
-    ap.add_argument("--iters", type=int, default=None, help="iterations per method (default: the preset's)")
+    ap.add_argument("--iters", type=int, default=2000, help="iterations per method (0: the preset's)")
     ap.add_argument("--meshes", nargs="*", default=None, help="names in ../shared/data/meshes or paths (default: all)")
     ap.add_argument("--views", type=int, default=48, help="rendered views per scene")
-    ap.add_argument("--size", type=int, default=96, help="image size in pixels")
+    ap.add_argument("--size", type=int, default=192, help="image size in pixels")
+    ap.add_argument("--max-size", type=int, default=0,
+                    help="train on images downscaled to this longest side (0: as rendered)")
+    ap.add_argument("--udf-mesh-method", choices=["meshudf", "spsr"], default="meshudf",
+                    help="meshing for the unsigned fields (NeUDF, NeuS |f|); NeuS-SDF always uses marching cubes")
     ap.add_argument("--background", choices=["white", "env"], default="white",
                     help="white: plain background (trained with white_background); env: NeRF++ background")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")

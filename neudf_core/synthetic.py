@@ -141,13 +141,21 @@ def _environment(dirs: np.ndarray) -> np.ndarray:
     return np.clip(base * (0.75 + 0.25 * checker[:, None]), 0, 1)
 
 
+def _has_detail(image) -> bool:
+    """Whether a texture image carries a pattern. An OBJ with UVs but no texture file loads with a
+    placeholder image of one colour; rendered as is, the garment would be a blank the photometric loss
+    cannot see, so the procedural texture is used instead."""
+    pixels = np.asarray(image.convert("RGB"))
+    return min(pixels.shape[:2]) >= 8 and bool((pixels.reshape(-1, 3) != pixels.reshape(-1, 3)[0]).any())
+
+
 def _surface_colour(mesh: trimesh.Trimesh, faces: np.ndarray, points: np.ndarray, seed: int) -> np.ndarray:
     """Albedo at ray hits: from the UV texture, the vertex colours, or a procedural texture."""
     bary = trimesh.triangles.points_to_barycentric(mesh.triangles[faces], points)
     visual = mesh.visual
     if visual.kind == "texture" and getattr(visual, "uv", None) is not None and visual.material is not None:
         image = getattr(visual.material, "image", None) or getattr(visual.material, "baseColorTexture", None)
-        if image is not None:
+        if image is not None and _has_detail(image):
             tex = np.asarray(image.convert("RGB"), dtype=np.float64) / 255.0
             uv = np.einsum("nk,nkj->nj", bary, visual.uv[mesh.faces[faces]]) % 1.0
             col = np.clip(((uv[:, 0]) * (tex.shape[1] - 1)).round().astype(int), 0, tex.shape[1] - 1)

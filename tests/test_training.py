@@ -111,6 +111,30 @@ def test_dataset_cameras_match_the_renderer(sheet_scene):
     assert exact > max(_mask_hits(data, points, 0.5), _mask_hits(data, points, -0.5)) + 0.02
 
 
+def test_mesh_with_uvs_but_a_placeholder_texture_is_rendered_with_the_procedural_one():
+    # An OBJ with UVs and no texture file (the DiffAvatar garments) loads with a one-colour 2x2 image:
+    # rendered as is it would be a blank a photometric method cannot see.
+    import trimesh
+    from PIL import Image
+
+    mesh = synthetic.procedural_mesh("sheet")
+    uv = (mesh.vertices[:, [0, 2]] - mesh.vertices[:, [0, 2]].min(0)) / np.ptp(mesh.vertices[:, [0, 2]], 0)
+    blank = trimesh.visual.material.SimpleMaterial(image=Image.new("RGBA", (2, 2), (102, 102, 102, 255)))
+    mesh.visual = trimesh.visual.TextureVisuals(uv=uv, material=blank)
+    camera = synthetic.sphere_cameras(5, 3.0, 64, 64)[0]  # high above the sheet, which lies in y = 0
+    image, mask = synthetic.render(mesh, [camera], "white")
+    albedo_spread = image[0][mask[0]].astype(float).std(axis=0)
+    assert mask[0].sum() > 100 and albedo_spread.max() > 30  # colours vary over the sheet, not one grey
+
+    striped = np.zeros((16, 16, 3), np.uint8)
+    striped[:, ::2] = 255
+    mesh.visual = trimesh.visual.TextureVisuals(uv=uv, material=trimesh.visual.material.SimpleMaterial(
+        image=Image.fromarray(striped)))
+    image, mask = synthetic.render(mesh, [camera], "white")
+    values = image[0][mask[0]]
+    assert set(np.unique(values.max(axis=1) < 20)) == {True, False}  # a real texture is used as it is
+
+
 def test_presets_are_data_and_unknown_ones_are_refused():
     quick = load_config("quick")
     paper = load_config("paper")
