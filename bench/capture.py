@@ -170,6 +170,9 @@ def main() -> None:
         "frames_total": record["frames_total"], "frames_registered": record["frames_registered"],
         "reprojection_error_px": record["reprojection_error_px"], "points": record["points"],
         "camera": record["camera"], "undistorted": record.get("undistorted"),
+        "matching": {k: record.get(k) for k in ("pairs_matched", "far_pairs_dropped", "sequential_only",
+                                                 "pose_jumps", "models")},
+        "warnings": record.get("warnings", []),
         "scene": record.get("scene"),
     }
     if render_s is not None:
@@ -181,7 +184,9 @@ def main() -> None:
     rows += [("total (s)", f"{wall:.1f}"),
              ("frames registered", f"{record['frames_registered']}/{record['frames_total']}"),
              ("reprojection error (px)", f"{record['reprojection_error_px']:.3f}"),
-             ("sparse points", str(record["points"]))]
+             ("sparse points", str(record["points"])),
+             ("pose jumps (after remapping)", str(record.get("pose_jumps"))),
+             ("mapped from neighbours in time only", str(record.get("sequential_only")))]
     if truth is not None:
         tf = result["truth"]
         rows += [("rotation error median / max (deg)", f"{tf['rotation_err_deg_median']:.3f} / {tf['rotation_err_deg_max']:.3f}"),
