@@ -5,8 +5,13 @@ training time (the clock stops while we mesh and measure). The target is the Cha
 the end of its budget; the table gives the time each preset needs to reach it. Each preset trains in
 its own process so that peak memory is its own. Prints a table and writes JSON under bench/results/.
 
-    .venv/bin/python bench/speed.py --paper-budget-s 1800 --paper-iters 250 --paper-eval-every-s 600 \
-        --fast-budget-s 300 --fast-eval-every-s 20                                        # CPU, about 45 min
+    .venv/bin/python bench/speed.py --paper-budget-s 1200 --paper-iters 150 --paper-eval-every-s 400 \
+        --fast-budget-s 300 --fast-eval-every-s 20                                        # CPU, about 25 min
+
+On a 2-core CPU `paper` (8x256 MLP, 128 samples, double backward) manages ~0.15 iterations/s and has no
+surface yet after 150 iterations; the table then says there is no target rather than inventing one.
+The comparison the bench is for needs a GPU:
+
     .venv/bin/python bench/speed.py --device cuda --views 200 --size 800 --paper-budget-s 600 --fast-budget-s 600
 """
 
