@@ -88,6 +88,11 @@ class LossConfig(_Block):
                                    "collapse on the cusp)")
     mask_weight: float = 0.0
     normal_smooth_weight: float = Field(0.0, description="authors' code: sign-agnostic consecutive-normal term")
+    zero_region_weight: float = Field(
+        0.0, description="not in the paper (0 = off): penalise the pre-Softplus value of Psi below "
+        "-zero_region_margin, so the field cannot sit at Psi ~ 0 over a volume where the eikonal term has no "
+        "gradient left (seen on the unseen inner side of garments)")
+    zero_region_margin: float = Field(0.03, description="pre-Softplus depth below which zero_region_weight acts")
 
 
 class OptimConfig(_Block):

@@ -149,3 +149,19 @@ def test_transmittance_telescopes_to_the_varsigma_ratio():
     psi_start, psi_end = COS * 3.0, COS * 1.0
     expected = float(varsigma(torch.tensor(psi_end), 5.0) / varsigma(torch.tensor(psi_start), 5.0))
     assert abs((1 - float(w.sum())) - expected) < 0.01
+
+
+def test_zero_region_penalty_lifts_a_saturated_field_and_spares_a_surface():
+    from neudf_core.losses import zero_region
+
+    # Pre-Softplus values: deep in a flat zero region, at a surface crossing, and away from the surface.
+    h = torch.tensor([-0.1, -0.06, -0.02, 0.0, 0.3], requires_grad=True)
+    psi = torch.nn.functional.softplus(h, beta=100.0)
+    valid = torch.ones_like(psi)
+    grad_psi = torch.autograd.grad(psi.sum(), h, retain_graph=True)[0]
+    assert grad_psi[0] < 1e-3  # what the eikonal term has to work with there: almost nothing
+    loss = zero_region(psi, valid, beta=100.0, margin=0.03)
+    assert float(loss) == pytest.approx((0.07 + 0.03) / 5, abs=1e-3)  # h recovered from Psi exactly
+    (grad,) = torch.autograd.grad(loss, h)
+    assert torch.allclose(grad[:2], torch.full((2,), -0.2), atol=1e-3)  # pushes h up with full strength
+    assert torch.all(grad[2:] == 0)  # a surface crossing (h > -margin) and the field away from it are left alone

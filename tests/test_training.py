@@ -196,3 +196,10 @@ def test_fast_preset_learns_the_scene(sheet_scene, tmp_path):
     assert last > rows[0]["psnr"] + 3.0, (rows[0]["psnr"], last)
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["field"]["encoding"] == "hashgrid" and cfg["field"]["gradient"] == "finite_difference"
+
+
+def test_zero_region_option_trains_and_is_off_by_default(sheet_scene, tmp_path):
+    assert all(load_config(p).loss.zero_region_weight == 0 for p in ("paper", "quick", "fast"))
+    result = train(sheet_scene, tmp_path / "run", preset="quick", iters=3,
+                   overrides={"loss": {"zero_region_weight": 10.0}, "data": {"white_background": True}})
+    assert result["iters"] == 3 and np.isfinite(result["loss"])
