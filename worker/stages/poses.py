@@ -47,8 +47,7 @@ from worker.errors import StageError
 from worker.stages.frames import read_frames_json, update_capture_json, write_json_atomic
 
 __all__ = ["STAGE", "PoseOptions", "estimate_poses", "is_done", "image_pairs", "pose_jumps", "jump_indices",
-           "colmap_dir",
-           "undistorted_dir"]
+           "colmap_dir", "undistorted_dir"]
 
 STAGE = "poses"
 
@@ -353,15 +352,16 @@ def _estimate_poses(data_dir: Path, opts: PoseOptions, progress: ProgressFn) -> 
     seconds["matching"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    # A remap, if pose jumps call for one, takes the last part of the range, so progress never goes back.
     model, model_dir, n_models = _map(db, image_dir, work / "sparse", len(names), opts,
-                                      sub_progress(progress, 0.55, 0.95))
+                                      sub_progress(progress, 0.55, 0.85))
     jumps = pose_jumps(model, opts.max_jump_factor) if video else []
     sequential_only = False
     if jumps:  # a far pair misled the mapper: map again from neighbours in time alone
-        progress(0.75, f"poses jump between {len(jumps)} pairs of frames: mapping again without far pairs")
+        progress(0.85, f"poses jump between {len(jumps)} pairs of frames: mapping again without far pairs")
         far_dropped += _drop_far_pairs(db, names, pairs, opts.overlap, None)
         model, model_dir, n_models = _map(db, image_dir, work / "sparse_sequential", len(names), opts,
-                                          sub_progress(progress, 0.75, 0.95))
+                                          sub_progress(progress, 0.85, 0.95))
         jumps, sequential_only = pose_jumps(model, opts.max_jump_factor), True
     seconds["mapping"] = time.perf_counter() - t
 
