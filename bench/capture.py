@@ -128,6 +128,8 @@ def main() -> None:
     parser.add_argument("--camera-model", default="OPENCV")
     parser.add_argument("--work", type=Path, default=Path("/tmp/neudf-bench-capture"), help="Videos and datasets.")
     parser.add_argument("--name", help="Result name (default: synthetic_<H>p or the video's stem).")
+    parser.add_argument("--render-only", action="store_true",
+                        help="Render and encode the synthetic video into --work, then stop (to capture it later unloaded).")
     parser.add_argument("--evaluate-only", action="store_true",
                         help="Do not capture again: report the figures of the dataset already in --work.")
     args = parser.parse_args()
@@ -147,6 +149,9 @@ def main() -> None:
             np.save(cams_file, render_video(video, args.mesh, args.frames, args.width, args.height, args.fov))
             render_s = time.perf_counter() - t
         truth = {"c2w": np.load(cams_file), "K": synthetic.intrinsics(args.width, args.height, args.fov)}
+        if args.render_only:
+            print(f"rendered {video}" + (f" in {render_s:.0f} s" if render_s is not None else " (cached)"))
+            return
 
     data = args.work / f"data_{name}"
     print(f"capture {video} -> {data}")

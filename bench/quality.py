@@ -3,7 +3,8 @@
 For each ground-truth mesh (../shared/data/meshes by default: tshirt.obj and pants.obj with their
 textures, diffavatar_*.obj with the renderer's procedural texture) it renders a synthetic NeuS-layout
 scene, trains the three rendering weights with the same preset, iterations and overrides, meshes each
-(meshudf for the two unsigned fields, marching cubes at level 0 for NeuS-SDF) and compares the mesh with
+(masked screened Poisson, the paper's meshing, for the two unsigned fields by default; marching cubes at
+level 0 for NeuS-SDF) and compares the mesh with
 the ground truth in GT's unit sphere (neudf_core.metrics.evaluate). Prints one table and writes JSON
 under bench/results/.
 
@@ -42,7 +43,7 @@ from neudf_core.trainer import train  # noqa: E402
 
 MESH_DIR = ROOT.parent / "shared" / "data" / "meshes"
 # weight -> (label, meshing method): NeuS on |f| learns an unsigned field, so it is meshed like NeUDF
-METHODS = {"neudf": ("NeUDF", "meshudf"), "neus_abs": ("NeuS |f|", "meshudf"), "neus_sdf": ("NeuS-SDF", "mc")}
+METHODS = {"neudf": ("NeUDF", "udf"), "neus_abs": ("NeuS |f|", "udf"), "neus_sdf": ("NeuS-SDF", "mc")}
 
 
 def find_meshes(names: list[str] | None) -> list[Path]:
@@ -66,7 +67,7 @@ def find_meshes(names: list[str] | None) -> list[Path]:
 def run_one(data: Path, run_dir: Path, weight: str, args: argparse.Namespace, gt: trimesh.Trimesh) -> dict[str, Any]:
     """Train one rendering weight, mesh it and evaluate it. Failures are recorded, not raised."""
     label, method = METHODS[weight]
-    if method == "meshudf":
+    if method == "udf":
         method = args.udf_mesh_method
     overrides: dict[str, Any] = {"renderer": {"weight": weight}, "data": {}}
     if args.background == "white":
@@ -133,7 +134,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=192, help="image size in pixels")
     ap.add_argument("--max-size", type=int, default=0,
                     help="train on images downscaled to this longest side (0: as rendered)")
-    ap.add_argument("--udf-mesh-method", choices=["meshudf", "spsr"], default="meshudf",
+    ap.add_argument("--udf-mesh-method", choices=["meshudf", "spsr"], default="spsr",
                     help="meshing for the unsigned fields (NeUDF, NeuS |f|); NeuS-SDF always uses marching cubes")
     ap.add_argument("--background", choices=["white", "env"], default="white",
                     help="white: plain background (trained with white_background); env: NeRF++ background")

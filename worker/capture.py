@@ -23,7 +23,7 @@ from worker.stages.frames import VideoLimits
 from worker.stages.poses import PoseOptions
 from worker.stages.scene import SceneOptions
 
-__all__ = ["CaptureStage", "CAPTURE_STAGES", "run_capture", "load_dataset_cameras", "umeyama", "pose_errors"]
+__all__ = ["CaptureStage", "CAPTURE_STAGES", "run_capture", "load_dataset_cameras", "align_cameras", "pose_errors"]
 
 
 @dataclass(frozen=True)
@@ -126,25 +126,35 @@ def load_dataset_cameras(data_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return np.stack(Ks), np.stack(c2ws)
 
 
-def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) minimising sum |s R src_i + t - dst_i|^2 (Umeyama 1991), src/dst (N, 3)."""
+def align_cameras(est_c2w: np.ndarray, true_c2w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) taking estimated cameras (N, 4, 4) onto the true ones.
+
+    Umeyama on the centres alone leaves the rotation poorly fixed when the centres are nearly coplanar (an
+    orbit): a centre error of 1% of the radius out of the plane tilts it by about half a degree, and that
+    tilt then shows up as rotation error in every camera. So R fits the centres (normalised to unit RMS
+    spread) and the cameras' orientations together; s and t then fit the centres given R.
+    """
+    src, dst = est_c2w[:, :3, 3], true_c2w[:, :3, 3]
     mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
     xs, xd = src - mu_s, dst - mu_d
-    U, D, Vt = np.linalg.svd(xd.T @ xs / len(src))
+    spread = max(float(np.sqrt((xs**2).sum(axis=1).mean() * (xd**2).sum(axis=1).mean())), 1e-12)
+    # maximise sum_i <R x_i, y_i> / spread + sum_i tr(true_i^T R est_i): one SVD of the summed correlations
+    H = xd.T @ xs / spread + np.einsum("nij,nkj->ik", true_c2w[:, :3, :3], est_c2w[:, :3, :3])
+    U, _, Vt = np.linalg.svd(H / len(src))
     S = np.eye(3)
     if np.linalg.det(U) * np.linalg.det(Vt) < 0:  # a reflection is not a rotation
         S[2, 2] = -1
     R = U @ S @ Vt
-    s = float(np.trace(np.diag(D) @ S) / (xs**2).sum(axis=1).mean())
+    s = float(np.einsum("ni,ni->", xd, xs @ R.T) / max((xs**2).sum(), 1e-12))
     return s, R, mu_d - s * R @ mu_s
 
 
 def pose_errors(est_c2w: np.ndarray, true_c2w: np.ndarray) -> dict[str, Any]:
-    """Errors of estimated cameras against the truth after the best similarity alignment of their centres.
+    """Errors of estimated cameras against the truth after the best similarity alignment (see align_cameras).
 
     Returns the alignment and per-camera errors: rotation (degrees) and centre distance (truth units).
     """
-    s, R, t = umeyama(est_c2w[:, :3, 3], true_c2w[:, :3, 3])
+    s, R, t = align_cameras(est_c2w, true_c2w)
     centres = s * est_c2w[:, :3, 3] @ R.T + t
     centre_err = np.linalg.norm(centres - true_c2w[:, :3, 3], axis=1)
     rel = np.einsum("nji,njk->nik", R @ est_c2w[:, :3, :3], true_c2w[:, :3, :3])  # (R est)^T true
