@@ -198,8 +198,9 @@ def test_fast_preset_learns_the_scene(sheet_scene, tmp_path):
     assert cfg["field"]["encoding"] == "hashgrid" and cfg["field"]["gradient"] == "finite_difference"
 
 
-def test_zero_region_option_trains_and_is_off_by_default(sheet_scene, tmp_path):
-    assert all(load_config(p).loss.zero_region_weight == 0 for p in ("paper", "quick", "fast"))
-    result = train(sheet_scene, tmp_path / "run", preset="quick", iters=3,
-                   overrides={"loss": {"zero_region_weight": 10.0}, "data": {"white_background": True}})
+def test_zero_region_term_is_on_in_quick_only_and_trains(sheet_scene, tmp_path):
+    # the paper has no such term; fast has not been measured with it
+    assert [load_config(p).loss.zero_region_weight for p in ("paper", "fast")] == [0, 0]
+    assert load_config("quick").loss.zero_region_weight > 0
+    result = train(sheet_scene, tmp_path / "run", preset="quick", iters=3, overrides={"data": {"white_background": True}})
     assert result["iters"] == 3 and np.isfinite(result["loss"])
