@@ -195,8 +195,8 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     report = {
         "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-        "machine": {"device": args.device, "torch": torch.__version__, "threads": torch.get_num_threads(), "jobs": args.jobs,
-                    "cpu": platform.processor() or platform.machine(),
+        "machine": {"device": args.device, "torch": torch.__version__, "threads": torch.get_num_threads(),
+                    "jobs": args.jobs, "cpu": platform.processor() or platform.machine(),
                     "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None},
         "seconds": round(time.time() - started, 1),
         "rows": rows,
