@@ -15,6 +15,8 @@ differences the paper is about.
     .venv/bin/python bench/quality.py --jobs 2                               # CPU: quick, 2000 iterations, 192 px
     .venv/bin/python bench/quality.py --preset fast --device cuda --views 64 --size 256 --iters 20000
     .venv/bin/python bench/quality.py --meshes diffavatar_tshirt --iters 5   # a smoke run
+    # after a change that touches NeUDF only: train it alone, take the baselines' rows from the last table
+    .venv/bin/python bench/quality.py --jobs 2 --methods neudf --rows-from bench/results/quality_quick.json
 """
 
 from __future__ import annotations
@@ -37,9 +39,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from neudf_core import synthetic  # noqa: E402
+from neudf_core.config import load_config  # noqa: E402
 from neudf_core.meshing import mesh_run  # noqa: E402
 from neudf_core.metrics import boundary_loops, evaluate  # noqa: E402
-from neudf_core.trainer import train  # noqa: E402
+from neudf_core.trainer import fit_schedule_to_iters, train  # noqa: E402
 
 MESH_DIR = ROOT.parent / "shared" / "data" / "meshes"
 # weight -> (label, meshing method): NeuS on |f| learns an unsigned field, so it is meshed like NeUDF
@@ -64,21 +67,32 @@ def find_meshes(names: list[str] | None) -> list[Path]:
     return paths
 
 
+def overrides_for(weight: str, args: argparse.Namespace) -> dict[str, Any]:
+    overrides: dict[str, Any] = {"renderer": {"weight": weight}, "data": {"max_size": args.max_size}}
+    if args.background == "white":
+        overrides["data"]["white_background"] = True
+    return overrides
+
+
+def resolved_config(weight: str, args: argparse.Namespace) -> dict[str, Any]:
+    """The training configuration a method gets in this run, as its run folder's config.json records it."""
+    cfg = fit_schedule_to_iters(load_config(args.preset, overrides_for(weight, args)), args.iters or None)
+    return json.loads(cfg.model_dump_json())
+
+
 def run_one(data: Path, run_dir: Path, weight: str, args: argparse.Namespace, gt: trimesh.Trimesh) -> dict[str, Any]:
     """Train one rendering weight, mesh it and evaluate it. Failures are recorded, not raised."""
     label, method = METHODS[weight]
     if method == "udf":
         method = args.udf_mesh_method
-    overrides: dict[str, Any] = {"renderer": {"weight": weight}, "data": {}}
-    if args.background == "white":
-        overrides["data"]["white_background"] = True
-    overrides["data"]["max_size"] = args.max_size
+    overrides = overrides_for(weight, args)
     row: dict[str, Any] = {"weight": weight, "label": label, "mesh_method": method,
                            "boundary_loops_gt": boundary_loops(gt)}
     t0 = time.perf_counter()
     result = train(data, run_dir, preset=args.preset, iters=args.iters or None, device=args.device,
                    overrides=overrides)
-    row.update(train_s=round(time.perf_counter() - t0, 1), iters=result["iters"], psnr=result.get("psnr"))
+    row.update(train_s=round(time.perf_counter() - t0, 1), iters=result["iters"], psnr=result.get("psnr"),
+               train_config=json.loads((run_dir / "config.json").read_text()))
     t1 = time.perf_counter()
     try:
         pred = mesh_run(run_dir, run_dir / "mesh.ply", method=method, resolution=args.resolution, device=args.device)
@@ -140,6 +154,38 @@ def print_table(rows: list[dict[str, Any]], weights: list[str]) -> None:
             print(f"mean Chamfer {lab}: {sum(values) / len(values) * 1e3:.2f} x1e-3 over {len(values)} meshes")
 
 
+# Settings that must agree for rows of two runs to sit in one table.
+_COMPARABLE = ("preset", "iters", "views", "size", "max_size", "udf_mesh_method", "background", "resolution", "samples")
+
+
+def reused_rows(path: Path, args: argparse.Namespace, meshes: list[str]) -> list[dict[str, Any]]:
+    """Rows of the methods not run now, from an earlier report made with the same settings."""
+    report = json.loads(path.read_text())
+    old = report["config"]
+    differ = [k for k in _COMPARABLE if old.get(k) != getattr(args, k)]
+    if differ:
+        raise SystemExit(f"{path} was made with other settings ({', '.join(f'{k}={old.get(k)}' for k in differ)}); "
+                         "its rows cannot share a table with this run")
+    rows = [dict(r, reused_from=str(path)) for r in report["rows"]
+            if r["weight"] not in args.methods and r["mesh"] in meshes]
+    for r in rows:
+        if "train_config" not in r:
+            print(f"note: {path} does not record its training configuration; {r['mesh']}/{r['label']} is "
+                  "reused on the report's settings alone")
+            continue
+        now = resolved_config(r["weight"], args)
+        changed = sorted(f"{block}.{k}" for block, v in now.items() if isinstance(v, dict)
+                         for k in v if r["train_config"].get(block, {}).get(k) != v[k])
+        if changed:
+            print(f"note: {r['mesh']}/{r['label']} was trained with other values of {', '.join(changed)}")
+            r["config_changed_since"] = changed
+    missing = [(m, w) for m in meshes for w in METHODS if w not in args.methods
+               and not any(r["mesh"] == m and r["weight"] == w for r in rows)]
+    if missing:
+        raise SystemExit(f"{path} has no rows for {missing}")
+    return rows
+
+
 def _json_safe(value: Any) -> Any:
     """NaN and infinities as null: strict JSON readers refuse them."""
     if isinstance(value, float) and not math.isfinite(value):
@@ -171,10 +217,14 @@ def main() -> None:
     ap.add_argument("--work-dir", type=Path, default=None, help="keep datasets and runs here (default: temporary)")
     ap.add_argument("--jobs", type=int, default=1,
                     help="trainings at once (CPU: 2 on 2 cores is about 1.5x faster; GPU: keep 1)")
+    ap.add_argument("--rows-from", type=Path, default=None,
+                    help="an earlier report made with the same settings: the methods not in --methods are "
+                         "taken from it (marked reused_from) so that the table is whole")
     ap.add_argument("--out", type=Path, default=None, help="JSON file (default: bench/results/quality_<preset>.json)")
     args = ap.parse_args()
 
     meshes = find_meshes(args.meshes)
+    reused = reused_rows(args.rows_from, args, [p.stem for p in meshes]) if args.rows_from else []
     work = args.work_dir or Path(tempfile.mkdtemp(prefix="neudf-quality-"))
     started = time.time()
     try:
@@ -185,12 +235,16 @@ def main() -> None:
                                                 size=args.size, background=args.background)
             jobs += [(path.stem, data, work / path.stem / weight, weight) for weight in args.methods]
         rows = run_all(jobs, args, started)
+        order = {w: i for i, w in enumerate(METHODS)}
+        rows = sorted(rows + reused, key=lambda r: ([p.stem for p in meshes].index(r["mesh"]), order[r["weight"]]))
     finally:
         if args.work_dir is None:
             shutil.rmtree(work, ignore_errors=True)
 
     print()
-    print_table(rows, args.methods)
+    print_table(rows, [w for w in METHODS if any(r["weight"] == w for r in rows)])
+    if reused:
+        print(f"rows of {', '.join(sorted({METHODS[r['weight']][0] for r in reused}))} reused from {args.rows_from}")
     out = args.out or ROOT / "bench" / "results" / f"quality_{args.preset}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     report = {

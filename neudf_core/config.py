@@ -67,6 +67,12 @@ class RendererConfig(_Block):
     weight: WeightMode = "neudf"
     varsigma: VarsigmaKind = "rational"
     sharpness_init: float = Field(0.05, description="r for NeUDF (paper: 0.05), s for the NeuS baselines")
+    sharpness_floor_end: float = Field(
+        0.0, description="not in the paper (0 = off; NeUDF weight only): a lower bound on r that rises "
+        "geometrically from sharpness_init at the first iteration to this value at the last. NeUDF's weight "
+        "lies on the near side of a surface only, about 1/r deep, and the rational varsigma's tail leaves a "
+        "halo about 2/(r d) opaque at distance d from a silhouette; the paper's 400k iterations let r grow "
+        "past both, short budgets stop near r = 50")
     section: SectionMode = "midpoint_gradient"
     cos_anneal_iters: int = 10_000
     normal_reg_k: int = Field(5, description="K previous samples for the regularised normal; 0 = raw gradient")

@@ -22,6 +22,7 @@ class RenderState:
     perturb: bool = False
     importance: bool = True
     with_grad: bool = False  # keep the graph through gradients (the eikonal term needs it)
+    sharpness_floor: float = 0.0  # lower bound on r at this step (see trainer.sharpness_floor); 0 = none
 
 
 class NeUDFModel(nn.Module):
@@ -100,6 +101,8 @@ class NeUDFModel(nn.Module):
             grad = grad.detach()
 
         sharp = self.sharpness()
+        if state.sharpness_floor > 0:
+            sharp = sharp.clamp_min(state.sharpness_floor)
         if cfg_r.section == "samples":
             # The paper's literal form: the two ends of a section are consecutive samples.
             prev, nxt = psi, torch.cat([psi[:, 1:], psi[:, -1:]], -1)

@@ -49,6 +49,18 @@ def cos_anneal_ratio(step: int, anneal_iters: int) -> float:
     return 1.0 if anneal_iters <= 0 else min(1.0, step / anneal_iters)
 
 
+def sharpness_floor(step: int, cfg_renderer, total: int) -> float:
+    """The floor on NeUDF's r at ``step``: geometric from sharpness_init to sharpness_floor_end; 0 when off.
+
+    The NeuS baselines keep their learned s: their logistic weight is symmetric about the surface, so a
+    small s blurs it without moving it."""
+    start, end = cfg_renderer.sharpness_init, cfg_renderer.sharpness_floor_end
+    if end <= 0 or cfg_renderer.weight != "neudf":
+        return 0.0
+    progress = min(1.0, step / max(total, 1))
+    return float(start * (end / start) ** progress)
+
+
 def fit_schedule_to_iters(cfg: TrainConfig, iters: int | None) -> TrainConfig:
     """Set the iteration count; when it is shorter than the preset's, warm-up, annealing and the start of
     importance sampling shrink in proportion, so a short run still runs the whole schedule."""
@@ -143,6 +155,7 @@ class Trainer:
             perturb=training,
             importance=self.step >= cfg.sampler.importance_start_iter,
             with_grad=training,
+            sharpness_floor=sharpness_floor(self.step, cfg.renderer, cfg.optim.iters),
         )
 
     def train_step(self) -> dict[str, float]:

@@ -11,7 +11,7 @@ from neudf_core import synthetic
 from neudf_core.cli import register
 from neudf_core.config import load_config
 from neudf_core.dataset import DatasetError, load_dataset
-from neudf_core.trainer import RunError, learning_rate, load_model, train
+from neudf_core.trainer import RunError, learning_rate, load_model, sharpness_floor, train
 
 
 @pytest.fixture(scope="module")
@@ -204,3 +204,24 @@ def test_zero_region_term_is_on_in_quick_only_and_trains(sheet_scene, tmp_path):
     assert load_config("quick").loss.zero_region_weight > 0
     result = train(sheet_scene, tmp_path / "run", preset="quick", iters=3, overrides={"data": {"white_background": True}})
     assert result["iters"] == 3 and np.isfinite(result["loss"])
+
+
+def test_sharpness_floor_rises_geometrically_for_the_neudf_weight_only():
+    cfg = load_config("quick", {"renderer": {"sharpness_init": 20.0, "sharpness_floor_end": 500.0}}).renderer
+    assert sharpness_floor(0, cfg, 1000) == pytest.approx(20.0)
+    assert sharpness_floor(500, cfg, 1000) == pytest.approx(100.0)  # the geometric mean of 20 and 500
+    assert sharpness_floor(1000, cfg, 1000) == pytest.approx(500.0)
+    assert sharpness_floor(5000, cfg, 1000) == pytest.approx(500.0)  # past the schedule it stays at the end
+    assert sharpness_floor(500, cfg.model_copy(update={"sharpness_floor_end": 0.0}), 1000) == 0.0
+    assert sharpness_floor(500, cfg.model_copy(update={"weight": "neus_sdf"}), 1000) == 0.0
+
+
+def test_training_renders_with_r_at_or_above_its_floor(sheet_scene, tmp_path):
+    overrides = {"data": {"white_background": True}, "log": {"log_every": 5},
+                 "renderer": {"sharpness_init": 20.0, "sharpness_floor_end": 2000.0}}
+    train(sheet_scene, tmp_path / "run", preset="quick", iters=20, overrides=overrides)
+    cfg = load_config("quick", overrides)
+    for row in _metrics(tmp_path / "run"):
+        # a row averages the r its 5 steps rendered with; the floor only rises, so its first step bounds it
+        assert row["sharpness"] >= sharpness_floor(row["iter"] - 5, cfg.renderer, 20) * (1 - 1e-5), row
+    assert _metrics(tmp_path / "run")[-1]["sharpness"] > 500.0  # the learned r alone stays near 20
