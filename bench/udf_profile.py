@@ -6,6 +6,11 @@ of offsets on one side is a zero *region* (see loss.zero_region_weight); a minim
 from offset 0 is a surface that is shifted or not reached. Run folders come from `neudf train` or from
 bench/quality.py --work-dir (<work>/<mesh>/<method>, GT in <work>/<mesh>/data/mesh_gt.ply).
 
+Then it renders rays that arrive along -normal from 1.2 away and compares two depths behind the GT surface
+(positive = past it): where the rendering weight of the first wall is centred (where the images see the
+surface) and where Psi along the same ray is lowest (where meshing puts it). A field that renders the
+wall in the right place while its minimum sits deeper has grown a low valley behind the seen side.
+
     .venv/bin/python bench/udf_profile.py /tmp/q4/tshirt/neudf /tmp/q4/tshirt/data/mesh_gt.ply
 """
 
@@ -21,7 +26,8 @@ import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from neudf_core.trainer import load_model  # noqa: E402
+from neudf_core.model import RenderState  # noqa: E402
+from neudf_core.trainer import load_model, sharpness_floor  # noqa: E402
 
 OFFSETS = (-0.06, -0.04, -0.03, -0.02, -0.01, -0.005, 0.0, 0.005, 0.01, 0.02, 0.03, 0.04, 0.06)
 
@@ -43,6 +49,27 @@ def main() -> None:
             psi = model.udf(torch.tensor(points + offset * normals, dtype=torch.float32)).numpy()
         q10, q50, q90 = np.quantile(psi, [0.1, 0.5, 0.9])
         print(f"{offset:>+8.3f}{q10:>10.4f}{q50:>10.4f}{q90:>10.4f}")
+    weight_depth, min_depth = rendered_against_minimum(model, points[:300], normals[:300])
+    print(f"rays along -normal: first-wall weight median {np.median(weight_depth):+.4f}, "
+          f"Psi minimum {np.median(min_depth):+.4f} behind the GT surface (medians over {len(weight_depth)} rays)")
+
+
+@torch.no_grad()
+def rendered_against_minimum(model, points: np.ndarray, normals: np.ndarray, start: float = 1.2,
+                             window: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
+    """Per ray: the median depth of the weight within ``window`` of the GT surface, and Psi's argmin there."""
+    cfg = model.cfg
+    state = RenderState(sharpness_floor=sharpness_floor(cfg.optim.iters, cfg.renderer, cfg.optim.iters))
+    o = torch.tensor(points + start * normals, dtype=torch.float32)
+    out = model.render(o, torch.tensor(-normals, dtype=torch.float32), state, torch.ones(3))
+    depth = out["mid_z"].numpy() - start
+    w = out["weights"].numpy() * (np.abs(depth) < window)
+    cdf = np.cumsum(w, 1) / np.maximum(w.sum(1, keepdims=True), 1e-12)
+    weight_depth = depth[np.arange(len(depth)), np.argmax(cdf >= 0.5, axis=1)]
+    ts = np.linspace(-window, window, 65)
+    along = points[:, None] - ts[None, :, None] * normals[:, None]
+    psi = model.udf(torch.tensor(along.reshape(-1, 3), dtype=torch.float32)).numpy().reshape(len(points), -1)
+    return weight_depth, ts[np.abs(psi).argmin(1)]  # abs: the NeuS-SDF baseline's field is signed
 
 
 if __name__ == "__main__":
