@@ -18,7 +18,7 @@ import torch
 from PIL import Image
 
 from neudf_core import losses
-from neudf_core.config import TrainConfig, load_config
+from neudf_core.config import RendererConfig, TrainConfig, load_config
 from neudf_core.dataset import Dataset, load_dataset
 from neudf_core.model import NeUDFModel, RenderState
 from neudf_core.progress import ProgressFn, null_progress
@@ -49,7 +49,7 @@ def cos_anneal_ratio(step: int, anneal_iters: int) -> float:
     return 1.0 if anneal_iters <= 0 else min(1.0, step / anneal_iters)
 
 
-def sharpness_floor(step: int, cfg_renderer, total: int) -> float:
+def sharpness_floor(step: int, cfg_renderer: RendererConfig, total: int) -> float:
     """The floor on NeUDF's r at ``step``: geometric from sharpness_init to sharpness_floor_end; 0 when off.
 
     The NeuS baselines keep their learned s: their logistic weight is symmetric about the surface, so a
