@@ -32,6 +32,10 @@ class FieldConfig(_Block):
     init_radius: float | None = Field(
         None, description="geometric init: None = the UDF of a point (unsigned) or a sphere of radius 0.5 (signed)")
     use_weight_norm: bool = True
+    output: Literal["softplus", "abs"] = Field(
+        "softplus", description="how the unsigned field's last layer becomes Psi >= 0: the paper's Softplus "
+        "(beta=100) or |h| (not in the paper: Psi reaches 0 with unit slope, so the opacity of a wall does not "
+        "build up over the Softplus's exponential tail)")
     encoding: Literal["frequency", "hashgrid"] = "frequency"
     hash_levels: int = 16
     hash_features: int = 2
@@ -95,10 +99,11 @@ class LossConfig(_Block):
     mask_weight: float = 0.0
     normal_smooth_weight: float = Field(0.0, description="authors' code: sign-agnostic consecutive-normal term")
     zero_region_weight: float = Field(
-        0.0, description="not in the paper (0 = off): penalise the pre-Softplus value of Psi below "
-        "-zero_region_margin, so the field cannot sit at Psi ~ 0 over a volume where the eikonal term has no "
-        "gradient left (seen on the unseen inner side of garments)")
-    zero_region_margin: float = Field(0.03, description="pre-Softplus depth below which zero_region_weight acts")
+        0.0, description="not in the paper (0 = off): penalise h, Psi's value before the output activation, "
+        "below -zero_region_margin, so the field cannot sit at Psi ~ 0 over a volume where the eikonal term has "
+        "no gradient left (seen on the unseen inner side of garments)")
+    zero_region_margin: float = Field(0.03, description="depth of h (before the output activation) below which "
+                                      "zero_region_weight acts")
 
 
 class OptimConfig(_Block):

@@ -103,10 +103,12 @@ class UDFNetwork(nn.Module):
         softplus_beta: float = 100.0,
         signed: bool = False,
         encoding: nn.Module | None = None,
+        output: Literal["softplus", "abs"] = "softplus",
     ):
         super().__init__()
         self.encoding = encoding if encoding is not None else PositionalEncoding(n_freqs)
         self.signed = signed
+        self.output = output
         self.skip_in = set(skip_in)
         self.d_feature = d_feature
         dims = [self.encoding.d_out] + [d_hidden] * n_layers + [1 + d_feature]
@@ -143,6 +145,11 @@ class UDFNetwork(nn.Module):
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """Returns (psi (N,), feature (N, d_feature))."""
+        psi, _, feature = self.forward_with_raw(x)
+        return psi, feature
+
+    def forward_with_raw(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(psi, h, feature): h is the last layer's value before the output activation (psi = h if signed)."""
         inputs = self.encoding(x)
         h = inputs
         for i, layer in enumerate(self.layers):
@@ -151,10 +158,12 @@ class UDFNetwork(nn.Module):
             h = layer(h)
             if i < len(self.layers) - 1:
                 h = self.activation(h)
-        value = h[:, 0]
+        raw = h[:, 0]
+        value = raw
         if not self.signed:
-            value = self.activation(value)  # Psi >= 0: the paper's Softplus on the output
-        return value, h[:, 1:]
+            # Psi >= 0: the paper's Softplus on the output, or |h|
+            value = raw.abs() if self.output == "abs" else self.activation(raw)
+        return value, raw, h[:, 1:]
 
 
 class ColorNetwork(nn.Module):

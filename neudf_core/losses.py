@@ -31,18 +31,16 @@ def normal_smoothness(gradients: Tensor, valid: Tensor) -> Tensor:
     return (diff * v).sum() / v.sum().clamp_min(1.0)
 
 
-def zero_region(psi: Tensor, valid: Tensor, beta: float, margin: float) -> Tensor:
+def zero_region(raw: Tensor, valid: Tensor, margin: float) -> Tensor:
     """Penalty on a UDF that is zero over a volume instead of on a surface (not in the paper).
 
-    Psi = Softplus_beta(h). Where h is well below 0, Psi ~ 0 and its gradient is ~0 too, so the eikonal
-    term cannot lift the region again. A true UDF needs h below ~-margin only within a hair of its zero
-    set (h = -0.03 is Psi = 5e-4 at beta = 100), so relu(-h - margin) acts on flat zero regions. h is
-    recovered from Psi exactly, h = Psi + log(1 - e^{-beta Psi}) / beta, whose gradient does not vanish.
+    ``raw`` is h, the field before its output activation (Psi = Softplus_beta(h) or |h|). With Softplus,
+    where h is well below 0 Psi ~ 0 and its gradient is ~0 too, so the eikonal term cannot lift the region
+    again; a true UDF needs h below ~-margin only within a hair of its zero set (h = -0.03 is Psi = 5e-4 at
+    beta = 100). With |h|, h < 0 is a second, sign-flipped copy of the field: left free it grows an SDF-like
+    inside whose sign changes are surfaces of their own. relu(-h - margin) acts on both.
     """
-    # Below 1e-12 (h < -0.23 at beta = 100) float32 loses h; such depths get no push (none seen in training).
-    psi = psi.float().clamp_min(1e-12)
-    h = psi + torch.log(-torch.expm1(-beta * psi)) / beta
-    return (torch.relu(-h - margin) * valid).sum() / valid.sum().clamp_min(1.0)
+    return (torch.relu(-raw.float() - margin) * valid).sum() / valid.sum().clamp_min(1.0)
 
 
 def psnr(pred: Tensor, target: Tensor) -> float:

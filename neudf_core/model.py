@@ -38,7 +38,8 @@ class NeUDFModel(nn.Module):
         encoding = (HashGridEncoding(f.hash_levels, f.hash_features, f.hash_log2_table, f.hash_base_res,
                                      f.hash_max_res) if f.encoding == "hashgrid" else None)
         self.udf_net = UDFNetwork(f.d_hidden, f.n_layers, f.skip_in, f.n_freqs, f.d_feature, radius,
-                                  use_weight_norm=f.use_weight_norm, signed=self.signed, encoding=encoding)
+                                  use_weight_norm=f.use_weight_norm, signed=self.signed, encoding=encoding,
+                                  output=f.output)
         self.color_net = ColorNetwork(f.d_feature, c.d_hidden, c.n_layers, c.n_freqs_view)
         self.background = (BackgroundNeRF(b.d_hidden, b.n_layers, b.n_freqs) if self._use_background() else None)
         self.sharpness = Sharpness(cfg.renderer.sharpness_init)
@@ -53,26 +54,31 @@ class NeUDFModel(nn.Module):
 
     def udf_and_grad(self, x: Tensor, create_graph: bool = False) -> tuple[Tensor, Tensor, Tensor]:
         """(Psi (N,), grad Psi (N, 3), feature (N, F))."""
+        psi, _, grad, feature = self._field(x, create_graph)
+        return psi, grad, feature
+
+    def _field(self, x: Tensor, create_graph: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(Psi, h before the output activation, grad Psi, feature)."""
         if self.cfg.field.gradient == "finite_difference":
             return self._udf_and_fd_grad(x)
         with torch.enable_grad():
             x = x.detach().requires_grad_(True)
-            psi, feature = self.udf_net(x)
+            psi, raw, feature = self.udf_net.forward_with_raw(x)
             (grad,) = torch.autograd.grad(psi.sum(), x, create_graph=create_graph)
-        return psi, grad, feature
+        return psi, raw, grad, feature
 
-    def _udf_and_fd_grad(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def _udf_and_fd_grad(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Tetrahedral finite differences: 4 more evaluations and a first-order graph only (no double
         backward), which is what makes hash grids cheap to regularise."""
         eps = self.cfg.field.fd_eps
         tetra = torch.tensor([[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0]],
                              device=x.device)
         shifted = (x[:, None, :] + eps * tetra[None]).reshape(-1, 3)
-        psi_all, feature_all = self.udf_net(torch.cat([x, shifted]))
+        psi_all, raw_all, feature_all = self.udf_net.forward_with_raw(torch.cat([x, shifted]))
         n = x.shape[0]
         around = psi_all[n:].reshape(n, 4)
         grad = (around[..., None] * tetra[None]).sum(1) / (4 * eps)
-        return psi_all[:n], grad, feature_all[:n]
+        return psi_all[:n], raw_all[:n], grad, feature_all[:n]
 
     def color(self, x: Tensor, normal: Tensor, view_dir: Tensor) -> Tensor:
         """RGB in 0..1 of points seen along ``view_dir`` with surface normal ``normal``."""
@@ -95,8 +101,8 @@ class NeUDFModel(nn.Module):
         points = rays_o[:, None] + rays_d[:, None] * mid_z[..., None]
         n_rays, n_samples = mid_z.shape
         flat = points.reshape(-1, 3)
-        psi, grad, feature = self.udf_and_grad(flat, create_graph=state.with_grad)
-        psi, grad = psi.reshape(n_rays, n_samples), grad.reshape(n_rays, n_samples, 3)
+        psi, raw, grad, feature = self._field(flat, create_graph=state.with_grad)
+        psi, raw, grad = psi.reshape(n_rays, n_samples), raw.reshape(n_rays, n_samples), grad.reshape(n_rays, n_samples, 3)
         if not state.with_grad:
             grad = grad.detach()
 
@@ -135,6 +141,7 @@ class NeUDFModel(nn.Module):
             "depth": (weights * mid_z).sum(-1),
             "weights": weights,
             "psi": psi,
+            "raw": raw,
             "gradients": grad,
             "normals": normals,
             "inside": inside,

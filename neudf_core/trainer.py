@@ -178,7 +178,7 @@ class Trainer:
             loss = loss + cfg.loss.mask_weight * losses.mask_bce(out["weight_sum"], batch["mask"])
         if cfg.loss.zero_region_weight > 0 and not self.model.signed:
             loss = loss + cfg.loss.zero_region_weight * losses.zero_region(
-                out["psi"], out["inside"], self.model.udf_net.activation.beta, cfg.loss.zero_region_margin)
+                out["raw"], out["inside"], cfg.loss.zero_region_margin)
         if cfg.loss.normal_smooth_weight > 0:
             loss = loss + cfg.loss.normal_smooth_weight * losses.normal_smoothness(out["gradients"], out["inside"])
         self.optimizer.zero_grad(set_to_none=True)

@@ -23,6 +23,22 @@ def test_psi_is_non_negative_and_starts_as_the_distance_to_a_point():
     assert bool((slopes > 0.5).all()) and bool((slopes < 1.5).all()), slopes
 
 
+def test_abs_output_is_the_magnitude_of_the_same_field():
+    torch.manual_seed(0)
+    soft = UDFNetwork(d_hidden=64, n_layers=3, skip_in=(2,), init_radius=0.3)
+    torch.manual_seed(0)
+    absolute = UDFNetwork(d_hidden=64, n_layers=3, skip_in=(2,), init_radius=0.3, output="abs")
+    x = torch.randn(500, 3) * 0.2  # inside the sphere of radius 0.3 the pre-activation is negative
+    psi_soft, raw, _ = soft.forward_with_raw(x)
+    psi_abs, raw_abs, _ = absolute.forward_with_raw(x)
+    assert torch.equal(raw, raw_abs) and bool((raw < 0).any()) and bool((raw > 0).any())
+    assert torch.equal(psi_abs, raw.abs())
+    assert torch.allclose(psi_soft, torch.nn.functional.softplus(raw, beta=100.0))
+    # |h| reaches 0 where h does, with the slope of h; the Softplus stays above 0 and flattens instead
+    crossing = raw.abs().argmin()
+    assert float(psi_abs[crossing]) < float(psi_soft[crossing])
+
+
 def test_signed_network_starts_as_a_sphere_sdf():
     torch.manual_seed(0)
     net = UDFNetwork(init_radius=0.5, signed=True)

@@ -154,14 +154,14 @@ def test_transmittance_telescopes_to_the_varsigma_ratio():
 def test_zero_region_penalty_lifts_a_saturated_field_and_spares_a_surface():
     from neudf_core.losses import zero_region
 
-    # Pre-Softplus values: deep in a flat zero region, at a surface crossing, and away from the surface.
+    # Pre-activation values: deep in a flat zero region, at a surface crossing, and away from the surface.
     h = torch.tensor([-0.1, -0.06, -0.02, 0.0, 0.3], requires_grad=True)
     psi = torch.nn.functional.softplus(h, beta=100.0)
     valid = torch.ones_like(psi)
     grad_psi = torch.autograd.grad(psi.sum(), h, retain_graph=True)[0]
     assert grad_psi[0] < 1e-3  # what the eikonal term has to work with there: almost nothing
-    loss = zero_region(psi, valid, beta=100.0, margin=0.03)
-    assert float(loss.detach()) == pytest.approx((0.07 + 0.03) / 5, abs=1e-3)  # h recovered from Psi exactly
+    loss = zero_region(h, valid, margin=0.03)
+    assert float(loss.detach()) == pytest.approx((0.07 + 0.03) / 5, abs=1e-6)
     (grad,) = torch.autograd.grad(loss, h)
-    assert torch.allclose(grad[:2], torch.full((2,), -0.2), atol=1e-3)  # pushes h up with full strength
+    assert torch.allclose(grad[:2], torch.full((2,), -0.2), atol=1e-6)  # pushes h up with full strength
     assert torch.all(grad[2:] == 0)  # a surface crossing (h > -margin) and the field away from it are left alone

@@ -149,41 +149,15 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
         kwargs["threshold"] = ctx.options.mesh_threshold
     ctx.mesh_file.parent.mkdir(parents=True, exist_ok=True)
     try:
-        if ctx.options.mesh_min_faces is None:
-            mesh = mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress, **kwargs)
-        else:
-            mesh = _mesh_keeping_small_pieces(ctx, ctx.options.mesh_min_faces, progress, **kwargs)
+        if ctx.options.mesh_min_faces is not None:
+            # the user's count is the whole rule: no extra share-of-the-mesh cut on top of it
+            kwargs.update(min_component_faces=ctx.options.mesh_min_faces, min_component_fraction=0.0)
+        mesh = mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress, **kwargs)
     except ValueError as exc:  # a field without a surface, a method that does not fit the field, ...
         hint = ". Train longer (more iterations) or raise mesh_threshold." if "no surface" in str(exc) else ""
         raise StageError("mesh", f"{exc}{hint}") from exc
     info = mesh.metadata.get("meshing", {})
     return {f"mesh_{k}": info[k] for k in ("method", "resolution", "threshold") if k in info}
-
-
-def _mesh_keeping_small_pieces(ctx: JobContext, min_faces: int, progress: ProgressFn, **kwargs: Any) -> Any:
-    """``mesh_run`` with its small-piece filter set. TEMPORARY: composed from neudf_core.meshing's public
-    functions until ``mesh_run`` takes ``min_component_faces`` itself (asked of its owner)."""
-    import inspect
-
-    from neudf_core.meshing import color_vertices, extract_mesh, mesh_run
-
-    if "min_component_faces" in inspect.signature(mesh_run).parameters:
-        return mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress,
-                        min_component_faces=min_faces, **kwargs)
-    from neudf_core.export import export_mesh
-    from neudf_core.trainer import load_model
-
-    model = load_model(ctx.run_dir, ctx.device)
-    model.eval()
-
-    def grad_fn(x: Any) -> Any:
-        return model.udf_and_grad(x)[1]
-
-    mesh = extract_mesh(model.udf, grad_fn=grad_fn, device=ctx.device, min_component_faces=min_faces,
-                        min_component_fraction=0.0, progress=sub_progress(progress, 0.0, 0.9), **kwargs)
-    color_vertices(mesh, model.color, device=ctx.device, progress=sub_progress(progress, 0.9, 0.98))
-    export_mesh(mesh, ctx.mesh_file)
-    return mesh
 
 
 def _export(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
