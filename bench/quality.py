@@ -95,14 +95,17 @@ def run_one(data: Path, run_dir: Path, weight: str, args: argparse.Namespace, gt
                train_config=json.loads((run_dir / "config.json").read_text()))
     t1 = time.perf_counter()
     try:
-        pred = mesh_run(run_dir, run_dir / "mesh.ply", method=method, resolution=args.resolution, device=args.device)
+        pred = mesh_run(run_dir, run_dir / "mesh.ply", method=method, resolution=args.resolution, device=args.device,
+                        views=data if args.min_seen > 0 else None, min_seen_fraction=args.min_seen)
     except ValueError as exc:  # e.g. no surface yet after a tiny budget: a result, not a crash
         row.update(error=str(exc), chamfer=None, fscore=None, boundary_loops_pred=None)
         return row
     row["mesh_s"] = round(time.perf_counter() - t1, 1)
     metrics = evaluate(pred, gt, n_samples=args.samples)
     row.update(metrics)
-    row.update(faces=len(pred.faces), mesh_threshold=pred.metadata.get("meshing", {}).get("threshold"))
+    info = pred.metadata.get("meshing", {})
+    row.update(faces=len(pred.faces), mesh_threshold=info.get("threshold"), min_seen=args.min_seen,
+               faces_unseen=info.get("faces_unseen"))
     return row
 
 
@@ -166,7 +169,8 @@ def reused_rows(path: Path, args: argparse.Namespace, meshes: list[str]) -> list
     if differ:
         raise SystemExit(f"{path} was made with other settings ({', '.join(f'{k}={old.get(k)}' for k in differ)}); "
                          "its rows cannot share a table with this run")
-    rows = [dict(r, reused_from=str(path)) for r in report["rows"]
+    # a row already reused keeps naming the report that trained it
+    rows = [dict(r, reused_from=r.get("reused_from", str(path))) for r in report["rows"]
             if r["weight"] not in args.methods and r["mesh"] in meshes]
     for r in rows:
         if "train_config" not in r:
@@ -212,6 +216,9 @@ def main() -> None:
                     help="white: plain background (trained with white_background); env: NeRF++ background")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--resolution", type=int, default=256, help="meshing grid (cells over the unit box)")
+    ap.add_argument("--min-seen", type=float, default=0.15,
+                    help="drop mesh faces fewer than this share of the scene's cameras see, as the service does "
+                         "(0: keep them); applies to the methods trained in this run")
     ap.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh for the metrics")
     ap.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
     ap.add_argument("--work-dir", type=Path, default=None, help="keep datasets and runs here (default: temporary)")

@@ -99,6 +99,8 @@ def mesh_command(
     method: Annotated[MeshMethod, typer.Option(help="meshudf (sheets, default), spsr (masked Poisson), mc (signed fields)")] = MeshMethod.meshudf,
     resolution: Annotated[int, typer.Option(help="grid cells per axis over the unit sphere's box")] = 256,
     threshold: Annotated[float | None, typer.Option(help="UDF value counted as surface (default: per method)")] = None,
+    views: Annotated[Path | None, typer.Option(help="the run's dataset folder: drop faces its cameras do not see")] = None,
+    min_seen: Annotated[float, typer.Option(help="with --views: the share of cameras that must see a face")] = 0.15,
     device: Annotated[Device, typer.Option(help="cpu or cuda")] = Device.cpu,
 ) -> None:
     """Extract the open mesh with vertex colours from a trained run."""
@@ -106,9 +108,11 @@ def mesh_command(
 
     if resolution < 16 or resolution > 2048:
         fail(f"--resolution must be between 16 and 2048, got {resolution}")
+    if not 0.0 < min_seen <= 1.0:
+        fail(f"--min-seen is a share of the cameras, in (0, 1], got {min_seen}")
     with user_errors(), progress_bar("meshing") as report:
-        mesh = mesh_run(run, out, method=method.value, resolution=resolution, threshold=threshold,
-                        device=device.value, progress=report)
+        mesh = mesh_run(run, out, method=method.value, resolution=resolution, threshold=threshold, views=views,
+                        min_seen_fraction=min_seen, device=device.value, progress=report)
     typer.echo(json.dumps({"mesh": str(out), "vertices": len(mesh.vertices), "faces": len(mesh.faces)}))
 
 

@@ -101,24 +101,58 @@ def _read_image(path: Path, size: tuple[int, int] | None, grey: bool) -> np.ndar
     return np.asarray(img, dtype=np.float32) / 255.0
 
 
-def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False) -> Dataset:
-    """Read a NeuS-layout folder; ``max_size`` > 0 downsizes images (and intrinsics) for training."""
-    root = Path(root)
+@dataclass
+class Cameras:
+    """The cameras of a dataset without its images: enough to ask what each view sees."""
+
+    intrinsics: np.ndarray  # (N, 3, 3) in pixels of the full-size images
+    c2w: np.ndarray  # (N, 4, 4), OpenCV camera to unit-sphere world
+    width: int
+    height: int
+
+    def __len__(self) -> int:
+        return len(self.c2w)
+
+
+def _image_paths(root: Path) -> list[Path]:
     if not root.is_dir():
         raise DatasetError(f"dataset folder {root} does not exist")
-    image_paths = sorted((root / "image").glob("*.png")) + sorted((root / "image").glob("*.jpg"))
-    if not image_paths:
+    paths = sorted((root / "image").glob("*.png")) + sorted((root / "image").glob("*.jpg"))
+    if not paths:
         raise DatasetError(f"no images in {root / 'image'} (expected image/*.png)")
+    return paths
+
+
+def _projections(root: Path, n: int) -> list[np.ndarray]:
+    """P_i = world_mat_i @ scale_mat_i for images 0..n-1: unit sphere to pixels."""
     cam_file = root / "cameras_sphere.npz"
     if not cam_file.is_file():
         raise DatasetError(f"{cam_file} is missing (NeuS layout: world_mat_i and scale_mat_i per image)")
     cams = np.load(cam_file)
-    missing = [i for i in range(len(image_paths)) if f"world_mat_{i}" not in cams or f"scale_mat_{i}" not in cams]
+    missing = [i for i in range(n) if f"world_mat_{i}" not in cams or f"scale_mat_{i}" not in cams]
     if missing:
         raise DatasetError(
             f"{cam_file.name} has no world_mat/scale_mat for image index {missing[0]} "
-            f"({len(missing)} of {len(image_paths)} images lack cameras)"
+            f"({len(missing)} of {n} images lack cameras)"
         )
+    return [cams[f"world_mat_{i}"] @ cams[f"scale_mat_{i}"] for i in range(n)]
+
+
+def load_cameras(root: str | Path) -> Cameras:
+    """The cameras of a NeuS-layout folder in unit-sphere coordinates; reads one image only, for its size."""
+    root = Path(root)
+    paths = _image_paths(root)
+    with Image.open(paths[0]) as first:
+        width, height = first.size
+    Ks, c2ws = zip(*(decompose_projection(P) for P in _projections(root, len(paths))))
+    return Cameras(np.stack(Ks), np.stack(c2ws), width, height)
+
+
+def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False) -> Dataset:
+    """Read a NeuS-layout folder; ``max_size`` > 0 downsizes images (and intrinsics) for training."""
+    root = Path(root)
+    image_paths = _image_paths(root)
+    projections = _projections(root, len(image_paths))
     mask_paths = None
     if use_masks:
         mask_paths = sorted((root / "mask").glob("*.png"))
@@ -137,8 +171,7 @@ def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False) -
         images.append(_read_image(path, size, grey=False))
         if mask_paths is not None:
             masks.append(_read_image(mask_paths[i], size, grey=True))
-        P = cams[f"world_mat_{i}"] @ cams[f"scale_mat_{i}"]
-        K, c2w = decompose_projection(P)
+        K, c2w = decompose_projection(projections[i])
         K[0, :] *= size[0] / width
         K[1, :] *= size[1] / height
         Ks.append(K)

@@ -48,6 +48,7 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
+from neudf_core.dataset import Cameras, load_cameras
 from neudf_core.metrics import split_pinched_vertices
 from neudf_core.progress import ProgressFn, null_progress, sub_progress
 
@@ -581,6 +582,47 @@ def drop_small_components(
     return out
 
 
+def views_seeing(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, tol: float) -> np.ndarray:
+    """How many cameras see each vertex: it lies in front of the camera and inside its image, and the
+    ray from the camera's centre meets no face more than ``tol`` before it."""
+    import open3d as o3d  # heavy import, only visibility needs it
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
+    counts = np.zeros(len(vertices), np.int64)
+    for K, c2w in zip(cameras.intrinsics, cameras.c2w):
+        centre = c2w[:3, 3]
+        offset = vertices - centre
+        in_camera = offset @ c2w[:3, :3]  # R^T (x - c) for each row
+        z = in_camera[:, 2]
+        pixels = in_camera @ K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = pixels[:, 0] / z, pixels[:, 1] / z
+        in_view = (z > 1e-9) & (u >= 0) & (u <= cameras.width) & (v >= 0) & (v <= cameras.height)
+        dist = np.linalg.norm(offset, axis=1)
+        rays = np.concatenate([np.broadcast_to(centre, offset.shape), offset / np.maximum(dist, 1e-12)[:, None]], 1)
+        hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
+        counts += in_view & (hit >= dist - tol)
+    return counts
+
+
+def cull_unseen(mesh: trimesh.Trimesh, cameras: Cameras, min_fraction: float, tol: float) -> trimesh.Trimesh:
+    """Drop the faces that fewer than ``min_fraction`` of the cameras see (all three vertices).
+
+    An unsigned field is only constrained where the images see it; where none does (the inside of a
+    tube, behind a wall) it may close over or grow sheets no view can refute. A face the cameras keep
+    seeing is a surface the images chose.
+    """
+    need = max(1, math.ceil(min_fraction * len(cameras)))
+    counts = views_seeing(np.asarray(mesh.vertices), np.asarray(mesh.faces), cameras, tol)
+    keep = (counts[mesh.faces] >= need).all(1)
+    log.info("visibility: %d of %d faces seen by >= %d of %d views", int(keep.sum()), len(keep), need, len(cameras))
+    out = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
+    out.remove_unreferenced_vertices()
+    return out
+
+
 # --------------------------------------------------------------------------- the methods
 
 
@@ -963,6 +1005,8 @@ def mesh_run(
     threshold: float | None = None,
     min_component_faces: int = 32,
     min_component_fraction: float = 0.01,
+    views: str | Path | None = None,
+    min_seen_fraction: float = 0.15,
     device: str = "cpu",
     progress: ProgressFn = null_progress,
 ) -> trimesh.Trimesh:
@@ -971,6 +1015,9 @@ def mesh_run(
     The suffix of ``out_path`` picks the format (.glb, .ply, .obj); raises ValueError for others before
     the long work starts, for a method that does not fit the field (mc for NeuS-SDF runs, meshudf or spsr
     for unsigned ones), and when the field has no surface yet. Options as :func:`extract_mesh`.
+    ``views``: the run's dataset folder; faces that fewer than ``min_seen_fraction`` of its cameras see
+    are dropped (:func:`cull_unseen`; 0.15 is 8 of 48 views, where culling a tube's and a pants' inner
+    sheets stopped gaining).
     """
     from neudf_core.export import SUFFIXES, export_mesh
     from neudf_core.trainer import load_model
@@ -980,6 +1027,7 @@ def mesh_run(
     model = load_model(run_dir, device)
     model.eval()
     signed = bool(getattr(model, "signed", False))
+    cameras = load_cameras(views) if views is not None else None  # bad folders fail before the long work
     if signed and method != "mc":
         raise ValueError(f"{run_dir} learned a signed field (the NeuS-SDF baseline): mesh it with method mc")
     if not signed and method == "mc":
@@ -991,8 +1039,19 @@ def mesh_run(
     mesh = extract_mesh(
         model.udf, method=method, resolution=resolution, bounds=UNIT_BOUNDS, threshold=threshold,
         grad_fn=grad_fn, min_component_faces=min_component_faces, min_component_fraction=min_component_fraction,
-        device=device, progress=sub_progress(progress, 0.0, 0.9),
+        device=device, progress=sub_progress(progress, 0.0, 0.85),
     )
+    if cameras is not None:
+        progress(0.85, "dropping what no camera sees")
+        info = mesh.metadata["meshing"]
+        faces_before = len(mesh.faces)
+        mesh = cull_unseen(mesh, cameras, min_seen_fraction, tol=2.0 * info["voxel"])
+        mesh = drop_small_components(mesh, min_component_faces, min_component_fraction)
+        if len(mesh.faces) == 0:
+            raise ValueError(f"no face is seen by {min_seen_fraction:.0%} of the {len(cameras)} cameras in {views}")
+        mesh.metadata["meshing"] = {**info, "views": str(views), "cameras": len(cameras),
+                                    "min_seen_fraction": min_seen_fraction,
+                                    "faces_unseen": faces_before - len(mesh.faces)}
     color_vertices(mesh, model.color, device=device, progress=sub_progress(progress, 0.9, 0.98))
     export_mesh(mesh, out_path)
     progress(1.0, f"wrote {out_path}")

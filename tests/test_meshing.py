@@ -269,6 +269,32 @@ TINY = {"data": {"white_background": True}, "optim": {"rays": 64},
         "sampler": {"n_coarse": 16, "n_importance": 16}}
 
 
+def test_faces_no_camera_sees_are_culled():
+    from neudf_core.dataset import Cameras
+    from neudf_core.meshing import cull_unseen, views_seeing
+    from neudf_core.synthetic import intrinsics, look_at, procedural_mesh
+
+    # Two stacked sheets (y = +-0.24) and four cameras above looking down: the lower sheet is hidden
+    # behind the upper one except along its rim, where the cameras see past the upper sheet's edge.
+    sheets = procedural_mesh("two_sheets", size=1.2, subdivisions=24)
+    eyes = [np.array([x, 3.0, z]) for x, z in ((0.3, 0.3), (-0.3, 0.3), (0.3, -0.3), (-0.3, -0.3))]
+    cameras = Cameras(np.stack([intrinsics(64, 64, 40.0)] * 4), np.stack([look_at(e, np.zeros(3)) for e in eyes]),
+                      64, 64)
+    counts = views_seeing(sheets.vertices, sheets.faces, cameras, tol=1e-3)
+    upper = sheets.vertices[:, 1] > 0
+    assert (counts[upper] == 4).all()
+    centre = np.abs(sheets.vertices[:, [0, 2]]).max(1) < 0.4
+    assert (counts[~upper & centre] == 0).all()
+    kept = cull_unseen(sheets, cameras, min_fraction=0.5, tol=1e-3)
+    lower_kept = kept.vertices[kept.vertices[:, 1] < 0]
+    assert len(lower_kept) < (~upper).sum() / 2 and (np.abs(lower_kept[:, [0, 2]]).max(1) >= 0.4).all()
+    assert len(kept.faces) >= len(sheets.faces) // 2  # the whole upper sheet stays
+    # a camera looking away sees nothing
+    away = Cameras(cameras.intrinsics[:1], np.stack([look_at(np.array([0, 3.0, 0.1]), np.array([0, 6.0, 0.1]))]),
+                   64, 64)
+    assert (views_seeing(sheets.vertices, sheets.faces, away, tol=1e-3) == 0).all()
+
+
 def test_mesh_run_end_to_end_on_a_trained_run(tiny_scene, tmp_path):
     from neudf_core.trainer import train
 
@@ -286,6 +312,13 @@ def test_mesh_run_end_to_end_on_a_trained_run(tiny_scene, tmp_path):
     assert np.linalg.norm(back.vertices, axis=1).max() < 1.0  # in the unit sphere's coordinates
     with pytest.raises(ValueError, match="signed"):
         mesh_run(sdf_run, tmp_path / "x.glb", method="meshudf", resolution=32)
+    # with the dataset's cameras: the sphere's faces all face some of the orbit, so culling keeps most
+    seen = mesh_run(sdf_run, tmp_path / "seen.ply", method="mc", resolution=32, views=tiny_scene)
+    info = seen.metadata["meshing"]
+    assert info["cameras"] == len(list((tiny_scene / "image").glob("*.png")))
+    assert 0 < len(seen.faces) <= len(mesh.faces) and info["faces_unseen"] == len(mesh.faces) - len(seen.faces)
+    with pytest.raises(ValueError, match="does not exist"):
+        mesh_run(sdf_run, tmp_path / "y.ply", method="mc", resolution=32, views=tmp_path / "nowhere")
 
     # NeUDF starts as the distance to a point: after two iterations there is no surface yet, and the
     # error says so instead of writing an empty file.

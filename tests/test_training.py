@@ -111,6 +111,15 @@ def test_dataset_cameras_match_the_renderer(sheet_scene):
     assert exact > max(_mask_hits(data, points, 0.5), _mask_hits(data, points, -0.5)) + 0.02
 
 
+def test_cameras_alone_are_the_datasets_cameras(sheet_scene):
+    from neudf_core.dataset import load_cameras
+
+    cameras, data = load_cameras(sheet_scene), load_dataset(sheet_scene)
+    assert (cameras.width, cameras.height) == (data.width, data.height) and len(cameras) == data.n_images
+    assert np.allclose(cameras.c2w, data.c2w.numpy(), atol=1e-5)
+    assert np.allclose(cameras.intrinsics, data.intrinsics.numpy(), atol=1e-3)
+
+
 def test_mesh_with_uvs_but_a_placeholder_texture_is_rendered_with_the_procedural_one():
     # An OBJ with UVs and no texture file (the DiffAvatar garments) loads with a one-colour 2x2 image:
     # rendered as is it would be a blank a photometric method cannot see.

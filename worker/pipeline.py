@@ -152,12 +152,14 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
         if ctx.options.mesh_min_faces is not None:
             # the user's count is the whole rule: no extra share-of-the-mesh cut on top of it
             kwargs.update(min_component_faces=ctx.options.mesh_min_faces, min_component_fraction=0.0)
-        mesh = mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress, **kwargs)
+        # the video's cameras decide what is surface: sheets none of them sees are the field's guesses
+        mesh = mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress, views=ctx.data_dir,
+                        **kwargs)
     except ValueError as exc:  # a field without a surface, a method that does not fit the field, ...
         hint = ". Train longer (more iterations) or raise mesh_threshold." if "no surface" in str(exc) else ""
         raise StageError("mesh", f"{exc}{hint}") from exc
     info = mesh.metadata.get("meshing", {})
-    return {f"mesh_{k}": info[k] for k in ("method", "resolution", "threshold") if k in info}
+    return {f"mesh_{k}": info[k] for k in ("method", "resolution", "threshold", "faces_unseen") if k in info}
 
 
 def _export(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
