@@ -21,6 +21,9 @@ with a weak gradient the gradient found half a voxel away (a cell-independent ru
 agree on their pseudo-signs); pinholes that remain where the field is off are closed (``fill_holes``).
 Tests fit this on analytic UDFs, on a noisy floored one, and on an MLP fitted to a bowl.
 
+With the dataset's cameras, :func:`mesh_run` then drops the faces too few of them see
+(:func:`cull_unseen`): an unsigned field is free wherever no image constrains it.
+
 All three evaluate the field sparsely: a coarse pass over blocks of 8^3 cells discards empty space (a
 distance field cannot drop by more than the distance travelled, see CULL_SAFETY), then only the kept
 blocks are evaluated at full resolution, in chunks, so memory stays bounded at resolution 512.
