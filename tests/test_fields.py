@@ -29,8 +29,9 @@ def test_abs_output_is_the_magnitude_of_the_same_field():
     torch.manual_seed(0)
     absolute = UDFNetwork(d_hidden=64, n_layers=3, skip_in=(2,), init_radius=0.3, output="abs")
     x = torch.randn(500, 3) * 0.2  # inside the sphere of radius 0.3 the pre-activation is negative
-    psi_soft, raw, _ = soft.forward_with_raw(x)
-    psi_abs, raw_abs, _ = absolute.forward_with_raw(x)
+    with torch.no_grad():
+        psi_soft, raw, _ = soft.forward_with_raw(x)
+        psi_abs, raw_abs, _ = absolute.forward_with_raw(x)
     assert torch.equal(raw, raw_abs) and bool((raw < 0).any()) and bool((raw > 0).any())
     assert torch.equal(psi_abs, raw.abs())
     assert torch.allclose(psi_soft, torch.nn.functional.softplus(raw, beta=100.0))
