@@ -34,8 +34,8 @@ class FieldConfig(_Block):
     use_weight_norm: bool = True
     output: Literal["softplus", "abs"] = Field(
         "softplus", description="how the unsigned field's last layer becomes Psi >= 0: the paper's Softplus "
-        "(beta=100) or |h| (not in the paper: Psi reaches 0 with unit slope, so the opacity of a wall does not "
-        "build up over the Softplus's exponential tail)")
+        "(beta=100) or |h| (not in the paper: Psi crosses 0 on a wall with unit slope, where the Softplus rounds "
+        "the cusp off above 0 and the field digs a valley behind the wall to turn it opaque)")
     encoding: Literal["frequency", "hashgrid"] = "frequency"
     hash_levels: int = 16
     hash_features: int = 2

@@ -152,7 +152,7 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
         if ctx.options.mesh_min_faces is not None:
             # the user's count is the whole rule: no extra share-of-the-mesh cut on top of it
             kwargs.update(min_component_faces=ctx.options.mesh_min_faces, min_component_fraction=0.0)
-        # the video's cameras decide what is surface: sheets none of them sees are the field's guesses
+        # the video's cameras decide what is surface: sheets few of them see are the field's guesses
         mesh = mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress, views=ctx.data_dir,
                         **kwargs)
     except ValueError as exc:  # a field without a surface, a method that does not fit the field, ...
