@@ -69,7 +69,11 @@ class RendererConfig(_Block):
     """The rendering weight. ``weight`` picks NeUDF or one of the paper's baselines."""
 
     weight: WeightMode = "neudf"
-    varsigma: VarsigmaKind = "rational"
+    varsigma: VarsigmaKind = Field(
+        "rational", description="the CDF of the U-density: rational r d / (1 + r d) (the paper), exp 1 - e^{-r d} "
+        "or atan (the paper's ablation). All of NeUDF's weight lies in front of the first zero, so the colour "
+        "comes from the weights' mean depth in front of it: 1/r for exp, several times that for rational "
+        "(its tail falls as 1/(r d)), and the field learns its zero that far behind the surface the images show")
     sharpness_init: float = Field(0.05, description="r for NeUDF (paper: 0.05), s for the NeuS baselines")
     sharpness_floor_end: float = Field(
         0.0, description="not in the paper (0 = off; NeUDF weight only): a lower bound on r that rises "

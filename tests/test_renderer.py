@@ -23,7 +23,7 @@ def plane_udf(t: torch.Tensor, hits: list[float]) -> tuple[torch.Tensor, torch.T
     return COS * signed.abs(), COS * torch.sign(signed)
 
 
-def render_weights(hits, mode, sharpness, n=2000, t0=0.0, t1=4.0):
+def render_weights(hits, mode, sharpness, n=2000, t0=0.0, t1=4.0, kind="rational"):
     """Dense sections on [t0, t1]; returns (section mid-points, weights)."""
     z = torch.linspace(t0, t1, n + 1, dtype=torch.float64)[None]
     dists = z[:, 1:] - z[:, :-1]
@@ -31,7 +31,7 @@ def render_weights(hits, mode, sharpness, n=2000, t0=0.0, t1=4.0):
     psi, slope = plane_udf(mid, hits)
     signed = mode == "neus_sdf"
     prev, nxt = section_ends(psi, slope, dists, cos_anneal=1.0, signed=signed)
-    alpha = alpha_for_mode(mode, prev, nxt, torch.tensor(sharpness, dtype=torch.float64))
+    alpha = alpha_for_mode(mode, prev, nxt, torch.tensor(sharpness, dtype=torch.float64), kind)
     weights, _ = weights_from_alpha(alpha)
     return mid[0], weights[0]
 
@@ -53,6 +53,28 @@ def test_neudf_mass_concentrates_on_the_first_of_two_surfaces():
     assert masses[-2] > 0.9
     mid, w = render_weights([1.5, 2.5], "neudf", 1e4)
     assert mass_near(mid, w, 2.5) < 0.02  # the hidden surface gets almost nothing
+
+
+def front_offset(mid, weights, depth):
+    """How far in front of ``depth`` the composited colour comes from: the weights' mean depth."""
+    return depth - float((weights * mid).sum() / weights.sum())
+
+
+def test_neudf_weight_lies_in_front_of_the_surface_about_one_over_r_deep():
+    # Transmittance reaches 0 at the first hit, so all the weight lies on the near side and the colour
+    # is composited from in front of the zero level: the field learns its zero that far behind the
+    # cloth the images show. With varsigma = 1 - e^{-r d} the mean is 1/r along the UDF; the rational
+    # varsigma's 1/(1 + r d) tail puts it several times deeper.
+    offsets = {}
+    for kind in ("exp", "rational"):
+        for r in (100.0, 400.0):
+            mid, w = render_weights([2.0], "neudf", r, n=20000, kind=kind)
+            assert float(w[mid > 2.0 + 1e-3].sum()) < 1e-6
+            offsets[kind, r] = front_offset(mid, w, 2.0)
+    for r in (100.0, 400.0):
+        assert offsets["exp", r] == pytest.approx(1.0 / (r * COS), rel=0.05)
+        assert offsets["rational", r] > 4.0 * offsets["exp", r]
+    assert offsets["rational", 400.0] < offsets["rational", 100.0] / 2  # a larger r shrinks it
 
 
 def test_naive_neus_on_udf_puts_only_half_the_mass_on_the_first_surface():
