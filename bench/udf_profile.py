@@ -12,6 +12,10 @@ surface) and where Psi along the same ray is lowest (where meshing puts it). A f
 wall in the right place while its minimum sits deeper has grown a low valley behind the seen side.
 
     .venv/bin/python bench/udf_profile.py /tmp/q4/tshirt/neudf /tmp/q4/tshirt/data/mesh_gt.ply
+
+With --mesh (the run's mesh.ply) it also prints where the mesh sits against GT: the median offset along
+GT's normals of the mesh's points within 0.04 of GT, in GT's unit sphere as `neudf eval` scales it
+(negative: inside, against GT's normals; garments whose normals mostly point outwards read as expected).
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ def main() -> None:
     ap.add_argument("run", type=Path, help="training run folder")
     ap.add_argument("gt", type=Path, help="GT mesh in the run's unit-sphere coordinates")
     ap.add_argument("--samples", type=int, default=5000)
+    ap.add_argument("--mesh", type=Path, default=None, help="a mesh of the run to place against GT")
     args = ap.parse_args()
 
     model = load_model(args.run)
@@ -52,6 +57,26 @@ def main() -> None:
     weight_depth, min_depth = rendered_against_minimum(model, points[:300], normals[:300])
     print(f"rays along -normal: first-wall weight median {np.median(weight_depth):+.4f}, "
           f"Psi minimum {np.median(min_depth):+.4f} behind the GT surface (medians over {len(weight_depth)} rays)")
+    if args.mesh is not None:
+        offset, share = mesh_offset(trimesh.load(args.mesh, force="mesh"), gt)
+        print(f"mesh: median offset {offset:+.4f} along GT's normals (GT's unit sphere; "
+              f"{share:.0%} of its points within 0.04 of GT)")
+
+
+def mesh_offset(mesh: trimesh.Trimesh, gt: trimesh.Trimesh, n: int = 100_000, near: float = 0.04) -> tuple[float, float]:
+    """Median signed offset along GT's normals of the mesh's points near GT, in GT's unit sphere."""
+    import open3d as o3d
+
+    centre = gt.bounds.mean(0)
+    scale = 1.0 / np.linalg.norm(gt.vertices - centre, axis=1).max()
+    points, _ = trimesh.sample.sample_surface(mesh, n, seed=0)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(gt.vertices, np.float32)), o3d.core.Tensor(np.asarray(gt.faces, np.uint32)))
+    hit = scene.compute_closest_points(o3d.core.Tensor(points.astype(np.float32)))
+    delta = (points - hit["points"].numpy()) * scale
+    signed = np.sum(delta * gt.face_normals[hit["primitive_ids"].numpy()], axis=1)
+    close = np.linalg.norm(delta, axis=1) < near
+    return float(np.median(signed[close])), float(close.mean())
 
 
 @torch.no_grad()
