@@ -30,6 +30,7 @@ import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from neudf_core.metrics import unit_sphere_normalisation  # noqa: E402
 from neudf_core.model import RenderState  # noqa: E402
 from neudf_core.trainer import load_model, sharpness_floor  # noqa: E402
 
@@ -67,14 +68,13 @@ def mesh_offset(mesh: trimesh.Trimesh, gt: trimesh.Trimesh, n: int = 100_000, ne
     """Median signed offset along GT's normals of the mesh's points near GT, in GT's unit sphere."""
     import open3d as o3d
 
-    centre = gt.bounds.mean(0)
-    scale = 1.0 / np.linalg.norm(gt.vertices - centre, axis=1).max()
+    centre, scale = unit_sphere_normalisation(gt)
     points, _ = trimesh.sample.sample_surface(mesh, n, seed=0)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(gt.vertices, np.float32)), o3d.core.Tensor(np.asarray(gt.faces, np.uint32)))
     hit = scene.compute_closest_points(o3d.core.Tensor(points.astype(np.float32)))
     delta = (points - hit["points"].numpy()) * scale
-    signed = np.sum(delta * gt.face_normals[hit["primitive_ids"].numpy()], axis=1)
+    signed = np.sum(delta * hit["primitive_normals"].numpy(), axis=1)
     close = np.linalg.norm(delta, axis=1) < near
     return float(np.median(signed[close])), float(close.mean())
 
