@@ -53,6 +53,7 @@ class ColorConfig(_Block):
     d_hidden: int = 256
     n_layers: int = 4
     n_freqs_view: int = 4
+    view_dependent: bool = True
 
 
 class BackgroundConfig(_Block):

@@ -40,7 +40,8 @@ class NeUDFModel(nn.Module):
         self.udf_net = UDFNetwork(f.d_hidden, f.n_layers, f.skip_in, f.n_freqs, f.d_feature, radius,
                                   use_weight_norm=f.use_weight_norm, signed=self.signed, encoding=encoding,
                                   output=f.output)
-        self.color_net = ColorNetwork(f.d_feature, c.d_hidden, c.n_layers, c.n_freqs_view)
+        self.color_net = ColorNetwork(f.d_feature, c.d_hidden, c.n_layers, c.n_freqs_view,
+                                      view_dependent=c.view_dependent)
         self.background = (BackgroundNeRF(b.d_hidden, b.n_layers, b.n_freqs) if self._use_background() else None)
         self.sharpness = Sharpness(cfg.renderer.sharpness_init)
 

@@ -3,7 +3,7 @@
 import torch
 
 from neudf_core.config import load_config
-from neudf_core.fields import HashGridEncoding, UDFNetwork
+from neudf_core.fields import ColorNetwork, HashGridEncoding, UDFNetwork
 from neudf_core.model import NeUDFModel
 
 
@@ -38,6 +38,18 @@ def test_abs_output_is_the_magnitude_of_the_same_field():
     # |h| reaches 0 where h does, with the slope of h; the Softplus stays above 0 and flattens instead
     crossing = raw.abs().argmin()
     assert float(psi_abs[crossing]) < float(psi_soft[crossing])
+
+
+def test_colour_ignores_the_view_direction_only_when_told_to():
+    torch.manual_seed(0)
+    x, normals, features = torch.randn(100, 3), torch.randn(100, 3), torch.randn(100, 16)
+    views_a = torch.nn.functional.normalize(torch.randn(100, 3), dim=-1)
+    views_b = torch.nn.functional.normalize(torch.randn(100, 3), dim=-1)
+    for view_dependent in (True, False):
+        net = ColorNetwork(d_feature=16, d_hidden=32, n_layers=2, view_dependent=view_dependent)
+        with torch.no_grad():
+            differ = not torch.equal(net(x, views_a, normals, features), net(x, views_b, normals, features))
+        assert differ == view_dependent
 
 
 def test_signed_network_starts_as_a_sphere_sdf():
