@@ -53,7 +53,9 @@ class ColorConfig(_Block):
     d_hidden: int = 256
     n_layers: int = 4
     n_freqs_view: int = 4
-    view_dependent: bool = True
+    view_dependent: bool = Field(
+        True, description="feed the view direction to the colour network (the paper); false: the colour of a "
+        "point is the same from every side, which keeps lids off openings the cameras look through")
 
 
 class BackgroundConfig(_Block):

@@ -3,7 +3,8 @@
 Shapes follow the paper's supplement (Sec. "Network Architecture"): Psi is an 8x256 MLP on positionally
 encoded points with a skip into layer 4, weight normalisation and Softplus(beta=100) on the hidden layers
 *and* on the output, so Psi >= 0 everywhere. The colour network sees the point, the encoded view
-direction, the (regularised) normal and Psi's feature vector.
+direction, the (regularised) normal and Psi's feature vector; without the view direction when asked
+(``color.view_dependent``), so that a lid over an opening cannot paint the inside's parallax on itself.
 """
 
 from __future__ import annotations
