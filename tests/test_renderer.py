@@ -173,6 +173,24 @@ def test_transmittance_telescopes_to_the_varsigma_ratio():
     assert abs((1 - float(w.sum())) - expected) < 0.01
 
 
+def test_a_ray_that_misses_a_surface_is_made_opaque_on_both_sides_of_its_closest_approach():
+    # alpha = (max - min) / max absorbs while Psi falls and again while it rises, so a ray passing a
+    # surface at distance d keeps varsigma(d)^2 of its light: a halo around silhouettes that is wide for
+    # the rational varsigma at a small r (the reason for the r floor in `quick`).
+    radius, t = 1.0, torch.linspace(-2.0, 2.0, 40001, dtype=torch.float64)[None]
+    dists = t[:, 1:] - t[:, :-1]
+    mid = t[:, :-1] + dists / 2
+    for r, d in ((400.0, 0.01), (400.0, 0.002), (1600.0, 0.01)):
+        impact = radius + d  # the ray x = (t, impact, 0) passes the sphere |x| = radius at distance d
+        dist = torch.sqrt(mid**2 + impact**2)
+        psi, slope = (dist - radius).abs(), mid / dist  # d|x|/dt along the ray
+        prev, nxt = section_ends(psi, slope, dists, cos_anneal=1.0, signed=False)
+        weights, _ = weights_from_alpha(alpha_for_mode("neudf", prev, nxt, torch.tensor(r, dtype=torch.float64)))
+        expected = 1.0 - float(varsigma(torch.tensor(d), r)) ** 2
+        assert float(weights.sum()) == pytest.approx(expected, rel=0.02), (r, d)
+    assert expected < 0.12  # at r = 1600 a miss by 0.01 is 11% opaque (36% at r = 400)
+
+
 def test_zero_region_penalty_lifts_a_saturated_field_and_spares_a_surface():
     from neudf_core.losses import zero_region
 
