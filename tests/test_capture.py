@@ -160,8 +160,10 @@ def captured(orbit) -> dict:
 
     data = orbit["root"] / "data"
     n_video = N_ORBIT + N_NOISE
+    # One pycolmap thread: with more, the poses vary from run to run though the seed is fixed (one suite run
+    # left a frame 1.9 degrees off; 15 repeats stayed under 0.8). With one thread every run gives 0.47.
     result = CliRunner().invoke(capture_app(), ["capture", str(orbit["video"]), "--out", str(data),
-                                                "--frames", str(n_video)])
+                                                "--frames", str(n_video), "--threads", "1"])
     assert result.exit_code == 0, result.output
     capture = json.loads((data / "capture.json").read_text())
     K, c2w = load_dataset_cameras(data)
@@ -262,6 +264,7 @@ def test_finished_capture_resumes_without_work(captured, orbit):
     npz = captured["data"] / "cameras_sphere.npz"
     before = npz.stat().st_mtime_ns
     reports = []
+    # the fixture ran pycolmap on one thread, this asks for all cores: how it runs is no reason to redo poses
     run_capture(orbit["video"], captured["data"], n_frames=N_ORBIT + N_NOISE,
                 progress=lambda f, m="", **info: reports.append(info))
     assert [r["stage"] for r in reports if r.get("skipped")] == ["frames", "poses", "scene"]

@@ -41,6 +41,10 @@ CAPTURE_STAGES = (
 )
 
 
+def _without(options: dict[str, Any], keys: frozenset[str]) -> dict[str, Any]:
+    return {k: v for k, v in options.items() if k not in keys}
+
+
 def run_capture(
     video: str | Path,
     data_dir: str | Path,
@@ -64,7 +68,7 @@ def run_capture(
     # A finished stage is reused only if it ran with the same options (a new --frames redoes everything).
     wanted = {
         "frames": ("frames_options", frames.options_record(video, n_frames, max_size, frames.DEFAULT_MIN_SHARPNESS)),
-        "poses": ("pose_options", pose_options.model_dump()),
+        "poses": ("pose_options", _without(pose_options.model_dump(), PoseOptions.RUN_ONLY)),
         "scene": ("scene_options", scene_options.model_dump()),
     }
     recorded = _read_json(data_dir / "capture.json")
@@ -79,7 +83,10 @@ def run_capture(
     for stage in CAPTURE_STAGES:
         end = start + stage.weight / total
         key, options = wanted[stage.name]
-        if not must_run and stage.is_done(data_dir) and recorded.get(key) == options:
+        done_with = recorded.get(key)
+        if key == "pose_options" and isinstance(done_with, dict):
+            done_with = _without(done_with, PoseOptions.RUN_ONLY)
+        if not must_run and stage.is_done(data_dir) and done_with == options:
             progress(end, f"{stage.name}: done earlier", stage=stage.name, skipped=True)
             start = end
             continue

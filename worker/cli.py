@@ -26,6 +26,8 @@ def capture(
     max_size: Annotated[int, typer.Option("--max-size", min=64, max=8192, help="Longest side of the frames, px.")] = 1600,
     camera_model: Annotated[str, typer.Option(help="COLMAP camera model: OPENCV, SIMPLE_RADIAL, RADIAL, PINHOLE.")] = "OPENCV",
     fresh: Annotated[bool, typer.Option("--fresh", help="Recompute every stage instead of resuming.")] = False,
+    threads: Annotated[int, typer.Option("--threads", min=-1, help="pycolmap threads (-1: all cores; 1: slower, "
+                                         "but the same video always gives the same poses).")] = -1,
 ) -> None:
     """Video -> frames, pycolmap poses, normalisation: DATA/image, cameras_sphere.npz, frames.json, capture.json, cameras.png."""
     from pydantic import ValidationError
@@ -39,7 +41,7 @@ def capture(
     if not video.is_file():
         raise _fail(f"no such video: {video}", 2)
     try:
-        pose_options = PoseOptions(camera_model=camera_model.upper())
+        pose_options = PoseOptions(camera_model=camera_model.upper(), num_threads=threads)
     except ValidationError:
         raise _fail(f"unknown camera model {camera_model!r}: use OPENCV, SIMPLE_RADIAL, RADIAL or PINHOLE", 2) from None
 

@@ -36,7 +36,7 @@ import shutil
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import pycolmap
@@ -56,6 +56,8 @@ class PoseOptions(BaseModel):
     """Knobs of the pycolmap stage; the defaults suit a phone walk-around of 100-300 frames."""
 
     model_config = ConfigDict(extra="forbid")
+    # How the stage runs, not what it computes: a resumed capture does not redo poses for a change in these.
+    RUN_ONLY: ClassVar[frozenset[str]] = frozenset({"num_threads", "colmap_log", "extract_batch", "match_batch"})
 
     camera_model: Literal["OPENCV", "SIMPLE_RADIAL", "RADIAL", "PINHOLE", "SIMPLE_PINHOLE"] = Field(
         "OPENCV", description="COLMAP camera model shared by all frames (with distortion unless *PINHOLE).")
@@ -78,7 +80,9 @@ class PoseOptions(BaseModel):
         1.0, ge=0, description="Largest distortion displacement (px) still treated as a pinhole camera.")
     extract_batch: int = Field(16, ge=1, description="Images per SIFT call (progress and cancel granularity).")
     match_batch: int = Field(256, ge=1, description="Pairs per matching call.")
-    num_threads: int = Field(-1, description="Threads for pycolmap (-1: all cores).")
+    num_threads: int = Field(
+        -1, ge=-1, description="Threads for pycolmap (-1: all cores). Threads make a run vary a little even with "
+        "the seed fixed; 1 repeats exactly.")
     seed: int = Field(0, description="Random seed of the mapper's RANSAC, for repeatable runs.")
     colmap_log: bool = Field(False, description="Let pycolmap log its INFO lines (thousands) to stderr.")
 
