@@ -27,7 +27,7 @@ def capture(
     camera_model: Annotated[str, typer.Option(help="COLMAP camera model: OPENCV, SIMPLE_RADIAL, RADIAL, PINHOLE.")] = "OPENCV",
     fresh: Annotated[bool, typer.Option("--fresh", help="Recompute every stage instead of resuming.")] = False,
     threads: Annotated[int, typer.Option("--threads", min=-1, help="pycolmap threads (-1: all cores; 1: slower, "
-                                         "but the same video always gives the same poses).")] = -1,
+                                         "but repeated runs agree more closely).")] = -1,
 ) -> None:
     """Video -> frames, pycolmap poses, normalisation: DATA/image, cameras_sphere.npz, frames.json, capture.json, cameras.png."""
     from pydantic import ValidationError

@@ -82,7 +82,7 @@ class PoseOptions(BaseModel):
     match_batch: int = Field(256, ge=1, description="Pairs per matching call.")
     num_threads: int = Field(
         -1, ge=-1, description="Threads for pycolmap (-1: all cores). Threads make a run vary a little even with "
-        "the seed fixed; 1 repeats exactly.")
+        "the seed fixed; 1 keeps repeated runs closer.")
     seed: int = Field(0, description="Random seed of the mapper's RANSAC, for repeatable runs.")
     colmap_log: bool = Field(False, description="Let pycolmap log its INFO lines (thousands) to stderr.")
 
