@@ -41,8 +41,11 @@ CAPTURE_STAGES = (
 )
 
 
-def _without(options: dict[str, Any], keys: frozenset[str]) -> dict[str, Any]:
-    return {k: v for k, v in options.items() if k not in keys}
+def _deciding(options: Any) -> Any:
+    """An options record without the knobs that change only how a stage runs (PoseOptions.RUN_ONLY)."""
+    if not isinstance(options, dict):
+        return options
+    return {k: v for k, v in options.items() if k not in PoseOptions.RUN_ONLY}
 
 
 def run_capture(
@@ -68,7 +71,7 @@ def run_capture(
     # A finished stage is reused only if it ran with the same options (a new --frames redoes everything).
     wanted = {
         "frames": ("frames_options", frames.options_record(video, n_frames, max_size, frames.DEFAULT_MIN_SHARPNESS)),
-        "poses": ("pose_options", _without(pose_options.model_dump(), PoseOptions.RUN_ONLY)),
+        "poses": ("pose_options", pose_options.model_dump()),
         "scene": ("scene_options", scene_options.model_dump()),
     }
     recorded = _read_json(data_dir / "capture.json")
@@ -83,10 +86,7 @@ def run_capture(
     for stage in CAPTURE_STAGES:
         end = start + stage.weight / total
         key, options = wanted[stage.name]
-        done_with = recorded.get(key)
-        if key == "pose_options" and isinstance(done_with, dict):
-            done_with = _without(done_with, PoseOptions.RUN_ONLY)
-        if not must_run and stage.is_done(data_dir) and done_with == options:
+        if not must_run and stage.is_done(data_dir) and _deciding(recorded.get(key)) == _deciding(options):
             progress(end, f"{stage.name}: done earlier", stage=stage.name, skipped=True)
             start = end
             continue
