@@ -157,6 +157,10 @@ def print_table(rows: list[dict[str, Any]], weights: list[str]) -> None:
             print(f"mean Chamfer {lab}: {sum(values) / len(values) * 1e3:.2f} x1e-3 over {len(values)} meshes")
 
 
+# Settings that only NeUDF's weight reads (the baselines' logistic weight has its own CDF and keeps its
+# learned s): a baseline row trained with other values of these is still the same training.
+NEUDF_ONLY = {"renderer.varsigma", "renderer.sharpness_floor_end"}
+
 # Settings that must agree for rows of two runs to sit in one table.
 _COMPARABLE = ("preset", "iters", "views", "size", "max_size", "udf_mesh_method", "background", "resolution", "samples")
 
@@ -178,8 +182,10 @@ def reused_rows(path: Path, args: argparse.Namespace, meshes: list[str]) -> list
                   "reused on the report's settings alone")
             continue
         now = resolved_config(r["weight"], args)
+        ignored = NEUDF_ONLY if r["weight"] != "neudf" else set()
         changed = sorted(f"{block}.{k}" for block, v in now.items() if isinstance(v, dict)
-                         for k in v if r["train_config"].get(block, {}).get(k) != v[k])
+                         for k in v if r["train_config"].get(block, {}).get(k) != v[k]
+                         and f"{block}.{k}" not in ignored)
         if changed:
             print(f"note: {r['mesh']}/{r['label']} was trained with other values of {', '.join(changed)}")
             r["config_changed_since"] = changed

@@ -74,9 +74,9 @@ class RendererConfig(_Block):
     weight: WeightMode = "neudf"
     varsigma: VarsigmaKind = Field(
         "rational", description="the CDF of the U-density: rational r d / (1 + r d) (the paper), exp 1 - e^{-r d} "
-        "or atan (the paper's ablation). All of NeUDF's weight lies in front of the first zero, so the colour "
-        "comes from the weights' mean depth in front of it: 1/r for exp, several times that for rational "
-        "(its tail falls as 1/(r d)), and the field learns its zero that far behind the surface the images show")
+        "or atan (the paper's ablation). A ray that passes a surface at d is 1 - varsigma(d)^2 opaque, "
+        "about 2/(r d) for rational: a halo around silhouettes that the field answers by shrinking behind the "
+        "surface the images show; exp's halo falls as 2 e^{-r d}")
     sharpness_init: float = Field(0.05, description="r for NeUDF (paper: 0.05), s for the NeuS baselines")
     sharpness_floor_end: float = Field(
         0.0, description="not in the paper (0 = off; NeUDF weight only): a lower bound on r that rises "

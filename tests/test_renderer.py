@@ -62,9 +62,8 @@ def front_offset(mid, weights, depth):
 
 def test_neudf_weight_lies_in_front_of_the_surface_about_one_over_r_deep():
     # Transmittance reaches 0 at the first hit, so all the weight lies on the near side and the colour
-    # is composited from in front of the zero level: the field learns its zero that far behind the
-    # cloth the images show. With varsigma = 1 - e^{-r d} the mean is 1/r along the UDF; the rational
-    # varsigma's 1/(1 + r d) tail puts it several times deeper.
+    # is composited from in front of the zero level. With varsigma = 1 - e^{-r d} the mean is 1/r along
+    # the UDF; the rational varsigma's 1/(1 + r d) tail puts it several times deeper.
     offsets = {}
     for kind in ("exp", "rational"):
         for r in (100.0, 400.0):
