@@ -17,6 +17,8 @@ differences the paper is about.
     .venv/bin/python bench/quality.py --meshes diffavatar_tshirt --iters 5   # a smoke run
     # after a change that touches NeUDF only: train it alone, take the baselines' rows from the last table
     .venv/bin/python bench/quality.py --jobs 2 --methods neudf --rows-from bench/results/quality_quick.json
+    # where two methods are within a single run's spread: several seeds, a mean per mesh
+    .venv/bin/python bench/quality.py --jobs 2 --meshes pants tshirt --methods neudf neus_sdf --seeds 0 1 2
 """
 
 from __future__ import annotations
@@ -67,8 +69,8 @@ def find_meshes(names: list[str] | None) -> list[Path]:
     return paths
 
 
-def overrides_for(weight: str, args: argparse.Namespace) -> dict[str, Any]:
-    overrides: dict[str, Any] = {"renderer": {"weight": weight}, "data": {"max_size": args.max_size}}
+def overrides_for(weight: str, args: argparse.Namespace, seed: int = 0) -> dict[str, Any]:
+    overrides: dict[str, Any] = {"renderer": {"weight": weight}, "data": {"max_size": args.max_size}, "seed": seed}
     if args.background == "white":
         overrides["data"]["white_background"] = True
     return overrides
@@ -80,13 +82,14 @@ def resolved_config(weight: str, args: argparse.Namespace) -> dict[str, Any]:
     return json.loads(cfg.model_dump_json())
 
 
-def run_one(data: Path, run_dir: Path, weight: str, args: argparse.Namespace, gt: trimesh.Trimesh) -> dict[str, Any]:
+def run_one(data: Path, run_dir: Path, weight: str, args: argparse.Namespace, gt: trimesh.Trimesh,
+            seed: int = 0) -> dict[str, Any]:
     """Train one rendering weight, mesh it and evaluate it. Failures are recorded, not raised."""
     label, method = METHODS[weight]
     if method == "udf":
         method = args.udf_mesh_method
-    overrides = overrides_for(weight, args)
-    row: dict[str, Any] = {"weight": weight, "label": label, "mesh_method": method,
+    overrides = overrides_for(weight, args, seed)
+    row: dict[str, Any] = {"weight": weight, "label": label, "seed": seed, "mesh_method": method,
                            "boundary_loops_gt": boundary_loops(gt)}
     t0 = time.perf_counter()
     result = train(data, run_dir, preset=args.preset, iters=args.iters or None, device=args.device,
@@ -109,18 +112,27 @@ def run_one(data: Path, run_dir: Path, weight: str, args: argparse.Namespace, gt
     return row
 
 
-def _run_job(job: tuple[str, Path, Path, str], args: argparse.Namespace, started: float) -> dict[str, Any]:
-    mesh, data, run_dir, weight = job
-    print(f"[{time.time() - started:7.0f}s] {mesh}: {METHODS[weight][0]}", flush=True)
+Job = tuple[str, Path, Path, str, int]  # mesh name, dataset, run folder, weight, seed
+
+
+def _run_job(job: Job, args: argparse.Namespace, started: float) -> dict[str, Any]:
+    mesh, data, run_dir, weight, seed = job
+    print(f"[{time.time() - started:7.0f}s] {mesh}: {METHODS[weight][0]}, seed {seed}", flush=True)
     gt = trimesh.load(data / "mesh_gt.ply", process=False)
-    return {"mesh": mesh, **run_one(data, run_dir, weight, args, gt)}
+    try:
+        return {"mesh": mesh, **run_one(data, run_dir, weight, args, gt, seed)}
+    except Exception as exc:  # noqa: BLE001 -- one failed training must not lose the other rows
+        print(f"{mesh}: {METHODS[weight][0]}, seed {seed} failed: {exc}", flush=True)
+        return {"mesh": mesh, "weight": weight, "label": METHODS[weight][0], "seed": seed,
+                "boundary_loops_gt": boundary_loops(gt), "error": f"{type(exc).__name__}: {exc}",
+                "chamfer": None, "fscore": None, "boundary_loops_pred": None}
 
 
 def _init_worker(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
-def run_all(jobs: list[tuple[str, Path, Path, str]], args: argparse.Namespace, started: float) -> list[dict[str, Any]]:
+def run_all(jobs: list[Job], args: argparse.Namespace, started: float) -> list[dict[str, Any]]:
     """Run the trainings, --jobs at a time. On a small CPU two one-thread processes train about 1.5x faster
     in all than one two-thread process (a small MLP does not keep two threads busy); rows keep job order."""
     if args.jobs <= 1:
@@ -135,26 +147,50 @@ def run_all(jobs: list[tuple[str, Path, Path, str]], args: argparse.Namespace, s
         return list(pool.map(_run_job, jobs, [args] * len(jobs), [started] * len(jobs)))
 
 
+def _mean(values: list[float]) -> float:
+    return sum(values) / len(values)
+
+
+def _cell(rows: list[dict[str, Any]]) -> str:
+    """Chamfer, F-score and boundary loops of one method: one run, or the mean of several seeds."""
+    if not rows:
+        return f"{'-':>28}"
+    ok = [r for r in rows if not r.get("error")]
+    if not ok:
+        no_surface = all(str(r["error"]).startswith("no surface") for r in rows)
+        return f"{'no surface' if no_surface else 'failed (error in JSON)':>28}"
+    loops = f"{ok[0]['boundary_loops_pred']}" if len(ok) == 1 else "-"
+    failed = "" if len(ok) == len(rows) else f" ({len(rows) - len(ok)} failed)"
+    return (f"{_mean([r['chamfer'] for r in ok]) * 1e3:>14.2f}{_mean([r['fscore'] for r in ok]):>7.3f}"
+            f"{loops:>7}{failed}")
+
+
 def print_table(rows: list[dict[str, Any]], weights: list[str]) -> None:
+    """One line per mesh and seed; with several seeds a mean line per mesh, and the means over meshes."""
     labels = [METHODS[w][0] for w in weights]
-    head = f"{'mesh':<22}{'GT loops':>9}  " + "".join(f"{lab:>28}" for lab in labels)
-    sub = f"{'':<22}{'':>9}  " + "".join(f"{'CD x1e-3   F   loops':>28}" for _ in labels)
+    head = f"{'mesh':<22}{'seed':>5}{'GT loops':>9}  " + "".join(f"{lab:>28}" for lab in labels)
+    sub = f"{'':<22}{'':>5}{'':>9}  " + "".join(f"{'CD x1e-3   F   loops':>28}" for _ in labels)
     print(head)
     print(sub)
+    per_mesh: dict[str, dict[str, float]] = {w: {} for w in weights}  # weight -> mesh -> mean Chamfer
     for mesh in dict.fromkeys(r["mesh"] for r in rows):
-        cells = []
-        gt_loops = next(r["boundary_loops_gt"] for r in rows if r["mesh"] == mesh)
+        of_mesh = [r for r in rows if r["mesh"] == mesh]
+        gt_loops = of_mesh[0]["boundary_loops_gt"]
+        seeds = sorted({r.get("seed", 0) for r in of_mesh})
+        for seed in seeds:
+            cells = [_cell([r for r in of_mesh if r["weight"] == w and r.get("seed", 0) == seed]) for w in weights]
+            print(f"{mesh:<22}{seed:>5}{gt_loops!s:>9}  " + "".join(cells))
+        if len(seeds) > 1:
+            print(f"{mesh:<22}{'mean':>5}{'':>9}  " + "".join(_cell([r for r in of_mesh if r["weight"] == w])
+                                                            for w in weights))
         for w in weights:
-            r = next((r for r in rows if r["mesh"] == mesh and r["weight"] == w), None)
-            if r is None or r.get("error"):
-                cells.append(f"{'no surface' if r else '-':>28}")
-                continue
-            cells.append(f"{r['chamfer'] * 1e3:>14.2f}{r['fscore']:>7.3f}{r['boundary_loops_pred']:>7}")
-        print(f"{mesh:<22}{gt_loops!s:>9}  " + "".join(cells))
+            values = [r["chamfer"] for r in of_mesh if r["weight"] == w and not r.get("error")]
+            if values:
+                per_mesh[w][mesh] = _mean(values)
     for w, lab in zip(weights, labels):
-        values = [r["chamfer"] for r in rows if r["weight"] == w and not r.get("error")]
-        if values:
-            print(f"mean Chamfer {lab}: {sum(values) / len(values) * 1e3:.2f} x1e-3 over {len(values)} meshes")
+        if per_mesh[w]:
+            print(f"mean Chamfer {lab}: {_mean(list(per_mesh[w].values())) * 1e3:.2f} x1e-3 over "
+                  f"{len(per_mesh[w])} meshes")
 
 
 # Settings that only NeUDF's weight reads (the baselines' logistic weight has its own CDF and keeps its
@@ -226,6 +262,9 @@ def main() -> None:
                     help="drop mesh faces fewer than this share of the scene's cameras see, as the service does "
                          "(0: keep them); applies to the methods trained in this run")
     ap.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh for the metrics")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0],
+                    help="train every method once per seed; the table gives each seed and the mean per mesh "
+                         "(single runs of one garment differ by 1-2 x1e-3 in Chamfer)")
     ap.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
     ap.add_argument("--work-dir", type=Path, default=None, help="keep datasets and runs here (default: temporary)")
     ap.add_argument("--jobs", type=int, default=1,
@@ -246,10 +285,13 @@ def main() -> None:
             source = trimesh.load(path, process=False, force="mesh")
             data = synthetic.write_neus_dataset(work / path.stem / "data", source, n_views=args.views,
                                                 size=args.size, background=args.background)
-            jobs += [(path.stem, data, work / path.stem / weight, weight) for weight in args.methods]
+            # seed 0 keeps the single-seed layout, so a --work-dir from before --seeds resumes
+            jobs += [(path.stem, data, work / path.stem / (weight if seed == 0 else f"{weight}_seed{seed}"), weight,
+                      seed) for seed in args.seeds for weight in args.methods]
         rows = run_all(jobs, args, started)
         order = {w: i for i, w in enumerate(METHODS)}
-        rows = sorted(rows + reused, key=lambda r: ([p.stem for p in meshes].index(r["mesh"]), order[r["weight"]]))
+        rows = sorted(rows + reused, key=lambda r: ([p.stem for p in meshes].index(r["mesh"]), r.get("seed", 0),
+                                                    order[r["weight"]]))
     finally:
         if args.work_dir is None:
             shutil.rmtree(work, ignore_errors=True)
