@@ -24,10 +24,12 @@ differences the paper is about.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import math
 import platform
 import shutil
+import signal
 import sys
 import tempfile
 import time
@@ -128,8 +130,15 @@ def _run_job(job: Job, args: argparse.Namespace, started: float) -> dict[str, An
                 "chamfer": None, "fscore": None, "boundary_loops_pred": None}
 
 
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
 def _init_worker(threads: int) -> None:
     torch.set_num_threads(threads)
+    # Killing the bench (kill PID, not Ctrl-C, which reaches the whole process group) would otherwise leave
+    # its workers training on, half the CPU each, into folders a rerun then shares with them.
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def run_all(jobs: list[Job], args: argparse.Namespace, started: float) -> list[dict[str, Any]]:
