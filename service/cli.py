@@ -86,6 +86,7 @@ def reconstruct(
     mesh_method: Annotated[str | None, typer.Option(help="meshudf, spsr or mc.")] = None,
     mesh_threshold: Annotated[float | None, typer.Option(help="UDF level under which a face counts as surface.")] = None,
     mesh_min_faces: Annotated[int | None, typer.Option(help="Connected pieces with fewer faces are dropped (default 32).")] = None,
+    mesh_min_seen: Annotated[float | None, typer.Option(help="Share of the cameras that must see a face (default 0.15).")] = None,
 ) -> None:
     """Run the whole pipeline on a video without a service: frames, poses, training, mesh, export."""
     from pydantic import ValidationError
@@ -105,7 +106,7 @@ def reconstruct(
     try:
         options = JobOptions(preset=preset, iters=iters, frames=frames, mesh_resolution=mesh_resolution,
                              mesh_method=mesh_method, mesh_threshold=mesh_threshold,
-                             mesh_min_faces=mesh_min_faces)
+                             mesh_min_faces=mesh_min_faces, mesh_min_seen=mesh_min_seen)
     except ValidationError as exc:
         first = exc.errors()[0]
         raise _fail(f"{'.'.join(map(str, first['loc']))}: {first['msg']}") from None

@@ -30,7 +30,7 @@ ARTIFACTS = Path(__file__).parent / "artifacts"
 # meshes is a few dozen faces near that minimum: hence the explicit threshold and no small-piece filter.
 # (A real surface needs hundreds of iterations; these tests check the plumbing, not the quality.)
 QUICK_JOB = {"preset": "quick", "iters": "10", "frames": "30", "mesh_resolution": "64", "mesh_threshold": "0.25",
-             "mesh_min_faces": "1"}
+             "mesh_min_faces": "1", "mesh_min_seen": "0.05"}
 # Fast liveness: a killed worker's job is queued again after a few seconds.
 FAST_LIVENESS = {"NEUDF_HEARTBEAT_S": "1", "NEUDF_STALE_AFTER_S": "5", "NEUDF_PROGRESS_INTERVAL_S": "0.2"}
 

@@ -112,7 +112,8 @@ def build_page(service: JobService) -> gr.Blocks:
         return owner
 
     def submit(file: str | None, preset: str, frames: float | None, iters: float | None, resolution: float | None,
-               threshold: float | None, min_faces: float | None, token: str) -> tuple[str | None, str]:
+               threshold: float | None, min_faces: float | None, min_seen: float | None,
+               token: str) -> tuple[str | None, str]:
         if not file:
             raise gr.Error("Choose a video first.")
         fields = {"preset": preset}
@@ -120,8 +121,9 @@ def build_page(service: JobService) -> gr.Blocks:
                            ("mesh_min_faces", min_faces)):
             if value:
                 fields[key] = str(int(value))
-        if threshold:
-            fields["mesh_threshold"] = str(float(threshold))
+        for key, value in (("mesh_threshold", threshold), ("mesh_min_seen", min_seen)):
+            if value:
+                fields[key] = str(float(value))
         try:
             job = service.create_from_file(Path(file), Path(file).name, fields, owner_of(token))
         except JobRejected as exc:
@@ -198,6 +200,8 @@ def build_page(service: JobService) -> gr.Blocks:
                         resolution = gr.Number(label="Mesh resolution", value=None, precision=0, minimum=0)
                         threshold = gr.Number(label="Mesh threshold", value=None, minimum=0)
                         min_faces = gr.Number(label="Smallest piece (faces)", value=None, precision=0, minimum=0)
+                        min_seen = gr.Number(label="Share of cameras that must see a face", value=None, minimum=0,
+                                             maximum=1)
                 submit_btn = gr.Button("Reconstruct", variant="primary", elem_id="neudf-submit")
                 notice = gr.Markdown(elem_id="neudf-notice")
                 jobs = gr.Dataframe(label="Jobs (click one)", interactive=False, elem_id="neudf-jobs", max_height=320)
@@ -215,7 +219,7 @@ def build_page(service: JobService) -> gr.Blocks:
                 gallery = gr.Gallery(label="Chosen frames", elem_id="neudf-frames", columns=8, height=220)
 
         outputs = [jobs, job_ids, status, gallery, cameras, loss, model, download, shown]
-        submit_btn.click(submit, [video, preset, frames, iters, resolution, threshold, min_faces, token], [job_id, notice]).then(
+        submit_btn.click(submit, [video, preset, frames, iters, resolution, threshold, min_faces, min_seen, token], [job_id, notice]).then(
             refresh, [job_id, token, shown], outputs)
         cancel_btn.click(cancel, [job_id, token], [notice])
         jobs.select(pick, [job_ids], [job_id]).then(refresh, [job_id, token, shown], outputs)

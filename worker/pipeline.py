@@ -57,6 +57,9 @@ class JobOptions(BaseModel):
                                          "a face counts as surface; default about a voxel.")
     mesh_min_faces: int | None = Field(None, ge=1, le=1_000_000, description="Connected pieces with fewer faces are "
                                        "dropped as noise (default 32).")
+    mesh_min_seen: float | None = Field(None, gt=0, le=1, description="Share of the video's cameras that must see a "
+                                        "face for it to stay (default 0.15): sheets fewer views see are the "
+                                        "field's guesses.")
 
     @field_validator("preset")
     @classmethod
@@ -147,6 +150,8 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
         kwargs["resolution"] = ctx.options.mesh_resolution
     if ctx.options.mesh_threshold is not None:
         kwargs["threshold"] = ctx.options.mesh_threshold
+    if ctx.options.mesh_min_seen is not None:
+        kwargs["min_seen_fraction"] = ctx.options.mesh_min_seen
     ctx.mesh_file.parent.mkdir(parents=True, exist_ok=True)
     try:
         if ctx.options.mesh_min_faces is not None:
@@ -195,7 +200,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("train", 0.65, _train, lambda c: [c.run_dir / "config.json", c.run_dir / "metrics.jsonl"],
           owns=lambda c: [c.run_dir], keys=("preset", "iters"), resumable=("iters",)),
     Stage("mesh", 0.10, _mesh, lambda c: [c.mesh_file], owns=lambda c: [c.mesh_file.parent],
-          keys=("mesh_method", "mesh_resolution", "mesh_threshold", "mesh_min_faces")),
+          keys=("mesh_method", "mesh_resolution", "mesh_threshold", "mesh_min_faces", "mesh_min_seen")),
     Stage("export", 0.03, _export, lambda c: [c.export_dir / "mesh.glb", c.export_dir / "metrics.json"],
           owns=lambda c: [c.export_dir / n for n in ("mesh.glb", "mesh.ply", "preview.png", "loss.png", "metrics.json")]),
 )
