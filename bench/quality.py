@@ -273,7 +273,8 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh for the metrics")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0],
                     help="train every method once per seed; the table gives each seed and the mean per mesh "
-                         "(single runs of one garment differed by up to 4 x1e-3 in Chamfer: bench/results/quality_quick_seeds.json)")
+                         "(single runs of one garment differed by up to 4 x1e-3 in Chamfer: "
+                         "bench/results/quality_quick_seeds.json)")
     ap.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
     ap.add_argument("--work-dir", type=Path, default=None, help="keep datasets and runs here (default: temporary)")
     ap.add_argument("--jobs", type=int, default=1,

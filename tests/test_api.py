@@ -92,7 +92,7 @@ def test_oversized_upload_without_length_is_cut_off(make_client: Callable, tiny_
 def test_bad_options_and_missing_file_are_422(make_client: Callable, tiny_video: Path) -> None:
     client, settings = make_client()
     for fields, word in (({"iters": "-3"}, "iters"), ({"preset": "nope"}, "preset"), ({"colour": "red"}, "colour"),
-                         ({"frames": "many"}, "frames")):
+                         ({"frames": "many"}, "frames"), ({"mesh_min_seen": "1.5"}, "mesh_min_seen")):
         response = upload(client, tiny_video, **fields)
         assert response.status_code == 422, fields
         assert word in response.json()["detail"]
