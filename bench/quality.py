@@ -16,6 +16,7 @@ differences the paper is about.
     .venv/bin/python bench/quality.py --preset fast --device cuda --views 64 --size 256 --iters 20000
     .venv/bin/python bench/quality.py --meshes diffavatar_tshirt --iters 5   # a smoke run
     # after a change that touches NeUDF only: train it alone, take the baselines' rows from the last table
+    # (a variant that is not in the preset yet: --set renderer.receding_opacity=false)
     .venv/bin/python bench/quality.py --jobs 2 --methods neudf --rows-from bench/results/quality_quick.json
     # where two methods are within a single run's spread: several seeds, a mean per mesh
     .venv/bin/python bench/quality.py --jobs 2 --meshes pants tshirt --methods neudf neus_sdf --seeds 0 1 2
@@ -43,7 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from neudf_core import synthetic  # noqa: E402
-from neudf_core.config import load_config  # noqa: E402
+from neudf_core.config import deep_merge, load_config  # noqa: E402
 from neudf_core.meshing import mesh_run  # noqa: E402
 from neudf_core.metrics import boundary_loops, evaluate  # noqa: E402
 from neudf_core.trainer import fit_schedule_to_iters, train  # noqa: E402
@@ -71,8 +72,26 @@ def find_meshes(names: list[str] | None) -> list[Path]:
     return paths
 
 
+def parse_setting(text: str) -> dict[str, Any]:
+    """``block.key=value`` (value as JSON, else a string) -> {"block": {"key": value}}."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected block.key=value, got {text!r}")
+    try:
+        value: Any = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    for part in reversed(key.split(".")):
+        value = {part: value}
+    return value
+
+
 def overrides_for(weight: str, args: argparse.Namespace, seed: int = 0) -> dict[str, Any]:
-    overrides: dict[str, Any] = {"renderer": {"weight": weight}, "data": {"max_size": args.max_size}, "seed": seed}
+    overrides: dict[str, Any] = {}
+    for setting in args.set:
+        overrides = deep_merge(overrides, setting)
+    overrides = deep_merge(overrides, {"renderer": {"weight": weight}, "data": {"max_size": args.max_size},
+                                       "seed": seed})
     if args.background == "white":
         overrides["data"]["white_background"] = True
     return overrides
@@ -204,7 +223,7 @@ def print_table(rows: list[dict[str, Any]], weights: list[str]) -> None:
 
 # Settings that only NeUDF's weight reads (the baselines' logistic weight has its own CDF and keeps its
 # learned s): a baseline row trained with other values of these is still the same training.
-NEUDF_ONLY = {"renderer.varsigma", "renderer.sharpness_floor_end"}
+NEUDF_ONLY = {"renderer.varsigma", "renderer.sharpness_floor_end", "renderer.receding_opacity"}
 
 # Settings that must agree for rows of two runs to sit in one table.
 _COMPARABLE = ("preset", "iters", "views", "size", "max_size", "udf_mesh_method", "background", "resolution", "samples")
@@ -275,6 +294,9 @@ def main() -> None:
                     help="train every method once per seed; the table gives each seed and the mean per mesh "
                          "(single runs of one garment differed by up to 4 x1e-3 in Chamfer: "
                          "bench/results/quality_quick_seeds.json)")
+    ap.add_argument("--set", type=parse_setting, action="append", default=[], metavar="BLOCK.KEY=VALUE",
+                    help="a training setting on top of the preset for the methods trained now (value as JSON), "
+                         "e.g. --set renderer.receding_opacity=false; repeatable")
     ap.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
     ap.add_argument("--work-dir", type=Path, default=None, help="keep datasets and runs here (default: temporary)")
     ap.add_argument("--jobs", type=int, default=1,

@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from neudf_core.renderer import SectionMode, VarsigmaKind, WeightMode
 
@@ -85,8 +85,20 @@ class RendererConfig(_Block):
         "halo about 2/(r d) opaque at distance d from a silhouette; the paper's 400k iterations let r grow "
         "past both, short budgets stop near r = 50")
     section: SectionMode = "midpoint_gradient"
+    receding_opacity: bool = Field(
+        True, description="NeUDF weight: sections where Psi rises (the ray leaving a surface it did not cross) "
+        "absorb light too, as the paper's alpha = (max - min) / max does; false (not in the paper) keeps only "
+        "falling sections and those that hold a zero, which halves the silhouette halo. Needs "
+        "section midpoint_gradient: between two samples a crossing looks like a fall and a rise")
     cos_anneal_iters: int = 10_000
     normal_reg_k: int = Field(5, description="K previous samples for the regularised normal; 0 = raw gradient")
+
+    @model_validator(mode="after")
+    def _receding_needs_gradient_sections(self) -> "RendererConfig":
+        if not self.receding_opacity and self.section == "samples":
+            raise ValueError("renderer.receding_opacity false needs section midpoint_gradient: with samples as "
+                             "section ends a ray that crosses a surface between two samples only falls, then rises")
+        return self
 
 
 class SamplerConfig(_Block):

@@ -116,7 +116,7 @@ class NeUDFModel(nn.Module):
         else:
             cos = (rays_d[:, None] * grad).sum(-1)
             prev, nxt = section_ends(psi, cos, dists, state.cos_anneal, signed=self.signed)
-        alpha = alpha_for_mode(cfg_r.weight, prev, nxt, sharp, cfg_r.varsigma)
+        alpha = alpha_for_mode(cfg_r.weight, prev, nxt, sharp, cfg_r.varsigma, cfg_r.receding_opacity)
 
         inside = (points.norm(dim=-1) < 1.0).float()
         if self.background is not None:

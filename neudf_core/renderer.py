@@ -42,13 +42,24 @@ def varsigma(d: Tensor, r: Tensor | float, kind: VarsigmaKind = "rational") -> T
     raise ValueError(f"unknown varsigma kind {kind!r}; expected rational, exp or atan")
 
 
-def neudf_alpha(psi_prev: Tensor, psi_next: Tensor, r: Tensor | float, kind: VarsigmaKind = "rational") -> Tensor:
-    """alpha_i = (varsigma_max - varsigma_min) / varsigma_max over the section's two ends."""
+def neudf_alpha(psi_prev: Tensor, psi_next: Tensor, r: Tensor | float, kind: VarsigmaKind = "rational",
+                receding: bool = True) -> Tensor:
+    """alpha_i = (varsigma_max - varsigma_min) / varsigma_max over the section's two ends.
+
+    ``receding=False`` (not in the paper) keeps the opacity of sections where Psi falls and of sections
+    that hold a zero (an end clamped to 0 by ``section_ends``), and drops it where the ray only moves away
+    from a surface. A crossing stays opaque; a ray that passes a surface at distance d keeps varsigma(d) of
+    its light instead of varsigma(d)^2, which halves the halo around silhouettes in log-transmittance
+    (50% opacity at ln 2 / r instead of 1.23 / r for exp).
+    """
     a = varsigma(psi_prev, r, kind)
     b = varsigma(psi_next, r, kind)
     hi, lo = torch.maximum(a, b), torch.minimum(a, b)
     # Where both ends sit on the zero set (hi = 0) nothing separates them: the section is transparent.
-    return ((hi - lo) / (hi + _EPS)).clamp(0.0, 1.0)
+    alpha = ((hi - lo) / (hi + _EPS)).clamp(0.0, 1.0)
+    if not receding:
+        alpha = alpha * ((psi_next <= psi_prev) | (psi_prev <= 0)).to(alpha.dtype)
+    return alpha
 
 
 def neus_alpha(value_prev: Tensor, value_next: Tensor, s: Tensor | float) -> Tensor:
@@ -81,11 +92,12 @@ def section_ends(
 
 
 def alpha_for_mode(
-    mode: WeightMode, prev: Tensor, nxt: Tensor, sharpness: Tensor | float, kind: VarsigmaKind = "rational"
+    mode: WeightMode, prev: Tensor, nxt: Tensor, sharpness: Tensor | float, kind: VarsigmaKind = "rational",
+    receding: bool = True,
 ) -> Tensor:
-    """Section opacities for one of the three weights compared in the paper."""
+    """Section opacities for one of the three weights compared in the paper (``receding``: NeUDF only)."""
     if mode == "neudf":
-        return neudf_alpha(prev, nxt, sharpness, kind)
+        return neudf_alpha(prev, nxt, sharpness, kind, receding)
     if mode in ("neus_abs", "neus_sdf"):
         return neus_alpha(prev, nxt, sharpness)
     raise ValueError(f"unknown weight mode {mode!r}; expected neudf, neus_abs or neus_sdf")

@@ -193,6 +193,43 @@ def test_a_ray_that_misses_a_surface_is_made_opaque_on_both_sides_of_its_closest
     assert opacity[1600.0, 0.01] < 0.12  # a larger r narrows the halo
 
 
+def test_without_receding_opacity_a_miss_keeps_varsigma_d_and_a_crossing_stays_opaque():
+    r, radius = 400.0, 1.0
+    t = torch.linspace(-2.0, 2.0, 40001, dtype=torch.float64)[None]
+    dists = t[:, 1:] - t[:, :-1]
+    mid = t[:, :-1] + dists / 2
+    for d in (0.001, 0.003):
+        impact = radius + d
+        dist = torch.sqrt(mid**2 + impact**2)
+        prev, nxt = section_ends((dist - radius).abs(), mid / dist, dists, cos_anneal=1.0, signed=False)
+        alpha = alpha_for_mode("neudf", prev, nxt, torch.tensor(r, dtype=torch.float64), "exp", receding=False)
+        weights, _ = weights_from_alpha(alpha)
+        expected = 1.0 - float(varsigma(torch.tensor(d), r, "exp"))
+        assert float(weights.sum()) == pytest.approx(expected, rel=0.02), d
+    # half opaque at ln 2 / r from the silhouette, where the paper's two-sided alpha is 1.23 / r out
+    assert 1.0 - float(varsigma(torch.tensor(math.log(2.0) / r), r, "exp")) == pytest.approx(0.5)
+
+    # Crossing a plane: coarse or fine sections, the zero may fall in a falling or a rising section.
+    for n, shift in ((20, 0.013), (50, 0.031), (2000, 0.0007)):
+        z = torch.linspace(shift, 4.0 + shift, n + 1, dtype=torch.float64)[None]
+        dists = z[:, 1:] - z[:, :-1]
+        psi, slope = plane_udf(z[:, :-1] + dists / 2, [2.0])
+        prev, nxt = section_ends(psi, slope, dists, cos_anneal=1.0, signed=False)
+        alpha = alpha_for_mode("neudf", prev, nxt, torch.tensor(r, dtype=torch.float64), "exp", receding=False)
+        weights, transmittance = weights_from_alpha(alpha)
+        assert float(transmittance) < 1e-4, (n, shift)
+
+
+def test_receding_opacity_off_needs_gradient_sections():
+    from pydantic import ValidationError
+
+    from neudf_core.config import load_config
+
+    assert not load_config("quick", {"renderer": {"receding_opacity": False}}).renderer.receding_opacity
+    with pytest.raises(ValidationError, match="midpoint_gradient"):
+        load_config("quick", {"renderer": {"receding_opacity": False, "section": "samples"}})
+
+
 def test_zero_region_penalty_lifts_a_saturated_field_and_spares_a_surface():
     from neudf_core.losses import zero_region
 
