@@ -16,7 +16,7 @@ differences the paper is about.
     .venv/bin/python bench/quality.py --preset fast --device cuda --views 64 --size 256 --iters 20000
     .venv/bin/python bench/quality.py --meshes diffavatar_tshirt --iters 5   # a smoke run
     # after a change that touches NeUDF only: train it alone, take the baselines' rows from the last table
-    # (a variant that is not in the preset yet: --set renderer.receding_opacity=false)
+    # (a variant that is not in the preset: --set renderer.sharpness_floor_end=1600)
     .venv/bin/python bench/quality.py --jobs 2 --methods neudf --rows-from bench/results/quality_quick.json
     # where two methods are within a single run's spread: several seeds, a mean per mesh
     .venv/bin/python bench/quality.py --jobs 2 --meshes pants tshirt --methods neudf neus_sdf --seeds 0 1 2
@@ -296,7 +296,7 @@ def main() -> None:
                          "bench/results/quality_quick_seeds.json)")
     ap.add_argument("--set", type=parse_setting, action="append", default=[], metavar="BLOCK.KEY=VALUE",
                     help="a training setting on top of the preset for the methods trained now (value as JSON), "
-                         "e.g. --set renderer.receding_opacity=false; repeatable")
+                         "e.g. --set renderer.sharpness_floor_end=1600; repeatable")
     ap.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
     ap.add_argument("--work-dir", type=Path, default=None, help="keep datasets and runs here (default: temporary)")
     ap.add_argument("--jobs", type=int, default=1,
