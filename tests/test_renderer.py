@@ -209,8 +209,9 @@ def test_without_receding_opacity_a_miss_keeps_varsigma_d_and_a_crossing_stays_o
     # half opaque at ln 2 / r from the silhouette, where the paper's two-sided alpha is 1.23 / r out
     assert 1.0 - float(varsigma(torch.tensor(math.log(2.0) / r), r, "exp")) == pytest.approx(0.5)
 
-    # Crossing a plane: coarse or fine sections, the zero may fall in a falling or a rising section.
-    for n, shift in ((20, 0.013), (50, 0.031), (2000, 0.0007)):
+    # Crossing a plane with coarse or fine sections: the section that holds the zero has its mid-point
+    # before it (falling: 50 sections) or past it (rising, kept for its clamped end: 20 and 2000).
+    for n, shift in ((20, 0.13), (50, 0.031), (2000, 0.0017)):
         z = torch.linspace(shift, 4.0 + shift, n + 1, dtype=torch.float64)[None]
         dists = z[:, 1:] - z[:, :-1]
         psi, slope = plane_udf(z[:, :-1] + dists / 2, [2.0])
