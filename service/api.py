@@ -142,7 +142,7 @@ _UPLOAD_BODY = {
                 "mesh_threshold": {"type": "number", "description": "UDF level under which a face counts as surface"},
                 "mesh_min_faces": {"type": "integer", "description": "Smaller connected pieces are dropped (default 32)"},
                 "mesh_min_seen": {"type": "number", "description": "Share of the cameras that must see a face "
-                                  "(default 0.15)"},
+                                  "(default 0.15; 0 keeps every face)"},
             },
         }}},
     }

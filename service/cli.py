@@ -86,7 +86,7 @@ def reconstruct(
     mesh_method: Annotated[str | None, typer.Option(help="meshudf, spsr or mc.")] = None,
     mesh_threshold: Annotated[float | None, typer.Option(help="UDF level under which a face counts as surface.")] = None,
     mesh_min_faces: Annotated[int | None, typer.Option(help="Connected pieces with fewer faces are dropped (default 32).")] = None,
-    mesh_min_seen: Annotated[float | None, typer.Option(help="Share of the cameras that must see a face (default 0.15).")] = None,
+    mesh_min_seen: Annotated[float | None, typer.Option(help="Share of the cameras that must see a face (default 0.15; 0 keeps every face).")] = None,
 ) -> None:
     """Run the whole pipeline on a video without a service: frames, poses, training, mesh, export."""
     from pydantic import ValidationError

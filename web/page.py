@@ -121,9 +121,10 @@ def build_page(service: JobService) -> gr.Blocks:
                            ("mesh_min_faces", min_faces)):
             if value:
                 fields[key] = str(int(value))
-        for key, value in (("mesh_threshold", threshold), ("mesh_min_seen", min_seen)):
-            if value:
-                fields[key] = str(float(value))
+        if threshold:
+            fields["mesh_threshold"] = str(float(threshold))
+        if min_seen is not None:  # 0 is a choice here: keep every face
+            fields["mesh_min_seen"] = str(float(min_seen))
         try:
             job = service.create_from_file(Path(file), Path(file).name, fields, owner_of(token))
         except JobRejected as exc:

@@ -57,9 +57,9 @@ class JobOptions(BaseModel):
                                          "a face counts as surface; default about a voxel.")
     mesh_min_faces: int | None = Field(None, ge=1, le=1_000_000, description="Connected pieces with fewer faces are "
                                        "dropped as noise (default 32).")
-    mesh_min_seen: float | None = Field(None, gt=0, le=1, description="Share of the video's cameras that must see a "
+    mesh_min_seen: float | None = Field(None, ge=0, le=1, description="Share of the video's cameras that must see a "
                                         "face for it to stay (default 0.15): sheets fewer views see are the "
-                                        "field's guesses.")
+                                        "field's guesses. 0 keeps every face.")
 
     @field_validator("preset")
     @classmethod
@@ -158,8 +158,9 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
             # the user's count is the whole rule: no extra share-of-the-mesh cut on top of it
             kwargs.update(min_component_faces=ctx.options.mesh_min_faces, min_component_fraction=0.0)
         # the video's cameras decide what is surface: sheets few of them see are the field's guesses
-        mesh = mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress, views=ctx.data_dir,
-                        **kwargs)
+        cull = ctx.options.mesh_min_seen != 0
+        mesh = mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress,
+                        views=ctx.data_dir if cull else None, **kwargs)
     except ValueError as exc:  # a field without a surface, a method that does not fit the field, ...
         hint = (". Train longer (more iterations) or raise mesh_threshold." if "no surface" in str(exc) else
                 ". Train longer or lower mesh_min_seen." if "no face is seen" in str(exc) else "")
