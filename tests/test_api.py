@@ -209,6 +209,7 @@ def test_embedded_video_to_glb(embedded_server: Any, tiny_video: Path) -> None:
         assert job["progress"] == 1.0 and job["error"] is None
         assert all(s["state"] == "done" and s["runs"] == 1 and s["seconds"] is not None for s in job["stages"])
         assert job["metrics"]["frames_registered"] >= 8 and job["metrics"]["mesh_faces"] > 0
+        assert "mesh_faces_unseen" not in job["metrics"]  # mesh_min_seen 0: meshed without the cameras
         for name in ("mesh.glb", "mesh.ply", "preview.png", "loss.png", "frames.png", "cameras.png", "metrics.json"):
             assert name in job["artifacts"], name
         glb = client.get(job["artifacts"]["mesh.glb"])

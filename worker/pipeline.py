@@ -163,7 +163,7 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
                         views=ctx.data_dir if cull else None, **kwargs)
     except ValueError as exc:  # a field without a surface, a method that does not fit the field, ...
         hint = (". Train longer (more iterations) or raise mesh_threshold." if "no surface" in str(exc) else
-                ". Train longer or lower mesh_min_seen." if "no face is seen" in str(exc) else "")
+                ". Train longer or lower mesh_min_seen (0 keeps every face)." if "no face is seen" in str(exc) else "")
         raise StageError("mesh", f"{exc}{hint}") from exc
     info = mesh.metadata.get("meshing", {})
     return {f"mesh_{k}": info[k] for k in ("method", "resolution", "threshold", "faces_unseen") if k in info}
