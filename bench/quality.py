@@ -224,6 +224,9 @@ def print_table(rows: list[dict[str, Any]], weights: list[str]) -> None:
 # Settings that only NeUDF's weight reads (the baselines' logistic weight has its own CDF and keeps its
 # learned s): a baseline row trained with other values of these is still the same training.
 NEUDF_ONLY = {"renderer.varsigma", "renderer.sharpness_floor_end", "renderer.receding_opacity"}
+# Settings the signed baseline never reads: its field has no output activation (f is h itself) and no
+# zero-region term.
+UNSIGNED_ONLY = {"field.output", "loss.zero_region_weight", "loss.zero_region_margin"}
 
 # Settings that must agree for rows of two runs to sit in one table.
 _COMPARABLE = ("preset", "iters", "views", "size", "max_size", "udf_mesh_method", "background", "resolution", "samples")
@@ -247,6 +250,8 @@ def reused_rows(path: Path, args: argparse.Namespace, meshes: list[str]) -> list
             continue
         now = resolved_config(r["weight"], args)
         ignored = NEUDF_ONLY if r["weight"] != "neudf" else set()
+        if r["weight"] == "neus_sdf":
+            ignored = ignored | UNSIGNED_ONLY
         changed = sorted(f"{block}.{k}" for block, v in now.items() if isinstance(v, dict)
                          for k in v if r["train_config"].get(block, {}).get(k) != v[k]
                          and f"{block}.{k}" not in ignored)
