@@ -107,7 +107,7 @@ def _sample(mesh: trimesh.Trimesh, n: int, seed: int) -> tuple[np.ndarray, np.nd
     return np.asarray(points), np.asarray(mesh.face_normals)[face_index]
 
 
-def _closest(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def closest_on_surface(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Exact distance from each point to ``mesh``'s surface, and the normal of the nearest triangle."""
     import open3d as o3d  # heavy import, only needed here
 
@@ -120,6 +120,30 @@ def _closest(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.
     result = scene.compute_closest_points(query)
     distance = np.linalg.norm(result["points"].numpy().astype(np.float64) - points, axis=1)
     return distance, result["primitive_normals"].numpy().astype(np.float64)
+
+
+def directed_distances(
+    pred: trimesh.Trimesh, gt: trimesh.Trimesh, *, n_samples: int = DEFAULT_SAMPLES, seed: int = 0,
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
+    """Samples of each mesh and their distances to the other, in GT's unit sphere: (pred side, GT side, scale).
+
+    Each side holds ``point`` (n, 3), ``normal`` (the sample's triangle), ``distance`` (to the other
+    mesh's surface) and ``normal_there`` (of the nearest triangle on the other mesh). The pred side's
+    distances are accuracy (how far the prediction strays from GT), the GT side's completeness.
+    """
+    _check(pred, "predicted")
+    _check(gt, "ground-truth")
+    centre, scale = unit_sphere_normalisation(gt)
+    pred_n, gt_n = pred.copy(), gt.copy()
+    for mesh in (pred_n, gt_n):
+        mesh.apply_translation(-centre)
+        mesh.apply_scale(scale)
+    sides = []
+    for mesh, other, sample_seed in ((pred_n, gt_n, seed), (gt_n, pred_n, seed + 1)):
+        points, normals = _sample(mesh, n_samples, sample_seed)
+        distance, normal_there = closest_on_surface(other, points)
+        sides.append({"point": points, "normal": normals, "distance": distance, "normal_there": normal_there})
+    return sides[0], sides[1], scale
 
 
 def evaluate(
@@ -138,17 +162,9 @@ def evaluate(
     surface has no inside), ``boundary_loops_pred``, ``boundary_loops_gt``; plus the directed terms,
     precision, recall, the threshold, the sample count and the scale applied.
     """
-    _check(pred, "predicted")
-    _check(gt, "ground-truth")
-    centre, scale = unit_sphere_normalisation(gt)
-    pred_n, gt_n = pred.copy(), gt.copy()
-    for mesh in (pred_n, gt_n):
-        mesh.apply_translation(-centre)
-        mesh.apply_scale(scale)
-    pred_pts, pred_normals = _sample(pred_n, n_samples, seed)
-    gt_pts, gt_normals = _sample(gt_n, n_samples, seed + 1)
-    d_pred, n_at_gt = _closest(gt_n, pred_pts)  # accuracy: how far predicted surface is from GT
-    d_gt, n_at_pred = _closest(pred_n, gt_pts)  # completeness: how much of GT the prediction covers
+    pred_side, gt_side, scale = directed_distances(pred, gt, n_samples=n_samples, seed=seed)
+    d_pred, pred_normals, n_at_gt = pred_side["distance"], pred_side["normal"], pred_side["normal_there"]
+    d_gt, gt_normals, n_at_pred = gt_side["distance"], gt_side["normal"], gt_side["normal_there"]
     precision = float(np.mean(d_pred < fscore_threshold))
     recall = float(np.mean(d_gt < fscore_threshold))
     fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
