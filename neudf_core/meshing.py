@@ -1038,7 +1038,7 @@ def color_vertices(
     return mesh
 
 
-def _rendered_depth_bias(model) -> float | None:
+def rendered_depth_bias(model) -> float | None:
     """How far in front of the zero level the images see a wall, along its normal: the mean depth of
     NeUDF's weight, 1/r for the exp varsigma (tests/test_renderer.py). None where it is not that simple:
     the NeuS weights are symmetric about the surface and the rational varsigma's tail has no finite mean."""
@@ -1108,7 +1108,7 @@ def mesh_run(
             raise ValueError(f"no face is seen by {min_seen_fraction:.0%} of the {len(cameras)} cameras in {views}")
         info = {**info, "views": str(views), "cameras": len(cameras), "min_seen_fraction": min_seen_fraction,
                 "faces_unseen": faces_before - len(mesh.faces)}
-        distance = _rendered_depth_bias(model) if view_offset else None
+        distance = rendered_depth_bias(model) if view_offset else None
         if distance:
             mesh, moved = offset_toward_views(mesh, cameras, distance, tol=2.0 * info["voxel"])
             info.update(view_offset=distance, vertices_offset=moved)

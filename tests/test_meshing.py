@@ -322,7 +322,7 @@ def test_a_sheet_seen_from_one_side_moves_toward_its_cameras_and_one_seen_from_b
 
 
 def test_the_view_offset_is_neudfs_mean_weight_depth_for_the_exp_varsigma_only(tiny_scene, tmp_path):
-    from neudf_core.meshing import _rendered_depth_bias
+    from neudf_core.meshing import rendered_depth_bias
     from neudf_core.trainer import load_model, train
 
     run = tmp_path / "run"
@@ -330,14 +330,14 @@ def test_the_view_offset_is_neudfs_mean_weight_depth_for_the_exp_varsigma_only(t
     model = load_model(run)
     assert model.cfg.renderer.varsigma == "exp"
     # two iterations cannot lift r from 20 to the floor's end (400): the floor sets it
-    assert _rendered_depth_bias(model) == pytest.approx(1.0 / model.cfg.renderer.sharpness_floor_end)
+    assert rendered_depth_bias(model) == pytest.approx(1.0 / model.cfg.renderer.sharpness_floor_end)
     model.trained_iters = 1  # half way through a two-iteration schedule: the floor's geometric midpoint
     r0, r1 = model.cfg.renderer.sharpness_init, model.cfg.renderer.sharpness_floor_end
     learned = float(model.sharpness().detach())
-    assert _rendered_depth_bias(model) == pytest.approx(1.0 / max(learned, (r0 * r1) ** 0.5))
+    assert rendered_depth_bias(model) == pytest.approx(1.0 / max(learned, (r0 * r1) ** 0.5))
     for other in ({"varsigma": "rational"}, {"weight": "neus_abs"}, {"weight": "neus_sdf"}):
         model.cfg = model.cfg.model_copy(update={"renderer": model.cfg.renderer.model_copy(update=other)})
-        assert _rendered_depth_bias(model) is None, other
+        assert rendered_depth_bias(model) is None, other
 
 
 def test_mesh_run_end_to_end_on_a_trained_run(tiny_scene, tmp_path):
