@@ -36,9 +36,16 @@ def neudf_runs(work: Path) -> list[tuple[str, Path]]:
     """(mesh name, run folder) for every finished NeUDF run under a quality.py work folder."""
     runs = []
     for run in sorted(work.glob("*/neudf*")):
-        if (run / "config.json").is_file() and (run / "checkpoints").is_dir():
-            if json.loads((run / "config.json").read_text())["renderer"]["weight"] == "neudf":
-                runs.append((run.parent.name, run))
+        if not (run / "config.json").is_file():
+            continue
+        cfg = json.loads((run / "config.json").read_text())
+        done = run / "checkpoints" / f"ckpt_{cfg['optim']['iters']:07d}.pt"
+        if cfg["renderer"]["weight"] != "neudf":
+            continue
+        if not done.is_file():
+            print(f"skipping {run}: not trained to its {cfg['optim']['iters']} iterations yet")
+            continue
+        runs.append((run.parent.name, run))
     return runs
 
 
