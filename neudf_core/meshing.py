@@ -585,14 +585,15 @@ def drop_small_components(
     return out
 
 
-def _seen_by_each_camera(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, tol: float):
-    """(camera centre, mask of the vertices it sees) for each camera: a vertex lies in front of the camera
-    and inside its image, and the ray from the camera's centre meets no face more than ``tol`` before it."""
+def views_seeing(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, tol: float) -> np.ndarray:
+    """How many cameras see each vertex: it lies in front of the camera and inside its image, and the
+    ray from the camera's centre meets no face more than ``tol`` before it."""
     import open3d as o3d  # heavy import, only visibility needs it
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
                         o3d.core.Tensor(np.asarray(faces, np.uint32)))
+    counts = np.zeros(len(vertices), np.int64)
     for K, c2w in zip(cameras.intrinsics, cameras.c2w):
         centre = c2w[:3, 3]
         offset = vertices - centre
@@ -605,48 +606,8 @@ def _seen_by_each_camera(vertices: np.ndarray, faces: np.ndarray, cameras: Camer
         dist = np.linalg.norm(offset, axis=1)
         rays = np.concatenate([np.broadcast_to(centre, offset.shape), offset / np.maximum(dist, 1e-12)[:, None]], 1)
         hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
-        yield centre, in_view & (hit >= dist - tol)
-
-
-def views_seeing(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, tol: float) -> np.ndarray:
-    """How many cameras see each vertex (see :func:`_seen_by_each_camera`)."""
-    counts = np.zeros(len(vertices), np.int64)
-    for _, seen in _seen_by_each_camera(vertices, faces, cameras, tol):
-        counts += seen
+        counts += in_view & (hit >= dist - tol)
     return counts
-
-
-def views_by_side(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, cameras: Cameras,
-                  tol: float) -> tuple[np.ndarray, np.ndarray]:
-    """How many cameras see each vertex from the side its normal points to, and how many from the other."""
-    front = np.zeros(len(vertices), np.int64)
-    back = np.zeros(len(vertices), np.int64)
-    for centre, seen in _seen_by_each_camera(vertices, faces, cameras, tol):
-        facing = np.sum(normals * (centre - vertices), axis=1) > 0
-        front += seen & facing
-        back += seen & ~facing
-    return front, back
-
-
-def offset_toward_views(mesh: trimesh.Trimesh, cameras: Cameras, distance: float, tol: float,
-                        one_sided: float = 0.9) -> tuple[trimesh.Trimesh, int]:
-    """Move each vertex ``distance`` along its normal toward the cameras that see it, where at least
-    ``one_sided`` of them look from the same side; returns the mesh and how many vertices moved.
-
-    NeUDF's weight lies wholly in front of the zero level it renders (transmittance reaches 0 there), so
-    the images see a wall ``distance`` = the weight's mean depth in front of the field's zero. A wall the
-    cameras see from one side only (a tube from outside) is trained that far behind the surface in the
-    images; a sheet seen from both sides is pulled both ways and stays.
-    """
-    vertices = np.asarray(mesh.vertices, np.float64)
-    normals = np.asarray(mesh.vertex_normals, np.float64)
-    front, back = views_by_side(vertices, np.asarray(mesh.faces), normals, cameras, tol)
-    seen = np.maximum(front + back, 1)
-    side = np.where(front >= one_sided * seen, 1.0, 0.0) - np.where(back >= one_sided * seen, 1.0, 0.0)
-    side[front + back == 0] = 0.0
-    out = trimesh.Trimesh(vertices + distance * side[:, None] * normals, np.asarray(mesh.faces), process=False)
-    out.metadata.update(mesh.metadata)
-    return out, int(np.count_nonzero(side))
 
 
 def cull_unseen(mesh: trimesh.Trimesh, cameras: Cameras, min_fraction: float, tol: float) -> trimesh.Trimesh:
@@ -1038,18 +999,6 @@ def color_vertices(
     return mesh
 
 
-def rendered_depth_bias(model) -> float | None:
-    """How far in front of the zero level the images see a wall, along its normal: the mean depth of
-    NeUDF's weight, 1/r for the exp varsigma (tests/test_renderer.py). None where it is not that simple:
-    the NeuS weights are symmetric about the surface and the rational varsigma's tail has no finite mean."""
-    from neudf_core.trainer import rendered_sharpness
-
-    renderer = model.cfg.renderer
-    if renderer.weight != "neudf" or renderer.varsigma != "exp":
-        return None
-    return 1.0 / rendered_sharpness(model)
-
-
 def mesh_run(
     run_dir: str | Path,
     out_path: str | Path,
@@ -1061,7 +1010,6 @@ def mesh_run(
     min_component_fraction: float = 0.01,
     views: str | Path | None = None,
     min_seen_fraction: float = 0.15,
-    view_offset: bool = True,
     device: str = "cpu",
     progress: ProgressFn = null_progress,
 ) -> trimesh.Trimesh:
@@ -1072,9 +1020,7 @@ def mesh_run(
     for unsigned ones), and when the field has no surface yet. Options as :func:`extract_mesh`.
     ``views``: the run's dataset folder; faces that fewer than ``min_seen_fraction`` of its cameras see
     are dropped (:func:`cull_unseen`; 0.15 is 8 of 48 views, where culling a tube's and a pants' inner
-    sheets stopped gaining). With ``views`` and ``view_offset``, a NeUDF field rendered with the exp
-    varsigma has its surface moved 1/r toward the cameras that see it from one side
-    (:func:`offset_toward_views`): there the weight's mean depth is 1/r in front of the zero level.
+    sheets stopped gaining).
     """
     from neudf_core.export import SUFFIXES, export_mesh
     from neudf_core.trainer import load_model
@@ -1106,13 +1052,9 @@ def mesh_run(
         mesh = drop_small_components(mesh, min_component_faces, min_component_fraction)
         if len(mesh.faces) == 0:
             raise ValueError(f"no face is seen by {min_seen_fraction:.0%} of the {len(cameras)} cameras in {views}")
-        info = {**info, "views": str(views), "cameras": len(cameras), "min_seen_fraction": min_seen_fraction,
-                "faces_unseen": faces_before - len(mesh.faces)}
-        distance = rendered_depth_bias(model) if view_offset else None
-        if distance:
-            mesh, moved = offset_toward_views(mesh, cameras, distance, tol=2.0 * info["voxel"])
-            info.update(view_offset=distance, vertices_offset=moved)
-        mesh.metadata["meshing"] = info
+        mesh.metadata["meshing"] = {**info, "views": str(views), "cameras": len(cameras),
+                                    "min_seen_fraction": min_seen_fraction,
+                                    "faces_unseen": faces_before - len(mesh.faces)}
     color_vertices(mesh, model.color, device=device, progress=sub_progress(progress, 0.9, 0.98))
     export_mesh(mesh, out_path)
     progress(1.0, f"wrote {out_path}")

@@ -97,16 +97,8 @@ def load_model(run_dir: str | Path, device: str = "cpu") -> NeUDFModel:
     model = NeUDFModel(cfg).to(device)
     state = torch.load(ckpts[-1], map_location=device, weights_only=False)
     model.load_state_dict(state["model"])
-    model.trained_iters = int(state.get("iter", cfg.optim.iters))
     model.eval()
     return model
-
-
-def rendered_sharpness(model: NeUDFModel) -> float:
-    """The r (or s) the model rendered with at its last step: the learned value, at or above the floor."""
-    total = model.cfg.optim.iters
-    floor = sharpness_floor(getattr(model, "trained_iters", total), model.cfg.renderer, total)
-    return max(float(model.sharpness().detach()), floor)
 
 
 class Trainer:

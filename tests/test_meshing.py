@@ -15,11 +15,9 @@ import pytest
 import torch
 import trimesh
 
-from neudf_core.dataset import Cameras
 from neudf_core.export import export_mesh
 from neudf_core.meshing import color_vertices, extract_mesh, mesh_run
 from neudf_core.metrics import boundary_loops
-from neudf_core.synthetic import procedural_mesh
 
 RES = 128
 HALF, HOLE, BOWL_R, GAP = 0.6, 0.2, 0.5, 0.25
@@ -271,21 +269,17 @@ TINY = {"data": {"white_background": True}, "optim": {"rays": 64},
         "sampler": {"n_coarse": 16, "n_importance": 16}}
 
 
-def _cameras_at(eyes):
-    from neudf_core.synthetic import intrinsics, look_at
-
-    return Cameras(np.stack([intrinsics(64, 64, 40.0)] * len(eyes)),
-                   np.stack([look_at(np.asarray(e, float), np.zeros(3)) for e in eyes]), 64, 64)
-
-
 def test_faces_no_camera_sees_are_culled():
+    from neudf_core.dataset import Cameras
     from neudf_core.meshing import cull_unseen, views_seeing
-    from neudf_core.synthetic import look_at
+    from neudf_core.synthetic import intrinsics, look_at, procedural_mesh
 
     # Two stacked sheets (y = +-0.24) and four cameras above looking down: the lower sheet is hidden
     # behind the upper one except along its rim, where the cameras see past the upper sheet's edge.
     sheets = procedural_mesh("two_sheets", size=1.2, subdivisions=24)
-    cameras = _cameras_at([(x, 3.0, z) for x, z in ((0.3, 0.3), (-0.3, 0.3), (0.3, -0.3), (-0.3, -0.3))])
+    eyes = [np.array([x, 3.0, z]) for x, z in ((0.3, 0.3), (-0.3, 0.3), (0.3, -0.3), (-0.3, -0.3))]
+    cameras = Cameras(np.stack([intrinsics(64, 64, 40.0)] * 4), np.stack([look_at(e, np.zeros(3)) for e in eyes]),
+                      64, 64)
     counts = views_seeing(sheets.vertices, sheets.faces, cameras, tol=1e-3)
     upper = sheets.vertices[:, 1] > 0
     assert (counts[upper] == 4).all()
@@ -299,45 +293,6 @@ def test_faces_no_camera_sees_are_culled():
     away = Cameras(cameras.intrinsics[:1], np.stack([look_at(np.array([0, 3.0, 0.1]), np.array([0, 6.0, 0.1]))]),
                    64, 64)
     assert (views_seeing(sheets.vertices, sheets.faces, away, tol=1e-3) == 0).all()
-
-
-def test_a_sheet_seen_from_one_side_moves_toward_its_cameras_and_one_seen_from_both_stays():
-    from neudf_core.meshing import offset_toward_views
-
-    sheet = procedural_mesh("sheet", size=1.0, subdivisions=16)  # the plane y = 0
-    above = _cameras_at([(0.3, 3.0, 0.3), (-0.3, 3.0, 0.3), (0.3, 3.0, -0.3), (-0.3, 3.0, -0.3)])
-    for flipped in (False, True):  # whichever way its normals point
-        mesh = trimesh.Trimesh(sheet.vertices, sheet.faces[:, ::-1] if flipped else sheet.faces, process=False)
-        moved, count = offset_toward_views(mesh, above, 0.01, tol=1e-3)
-        assert count == len(mesh.vertices)
-        np.testing.assert_allclose(moved.vertices[:, 1], 0.01, atol=1e-9)
-        np.testing.assert_allclose(moved.vertices[:, [0, 2]], mesh.vertices[:, [0, 2]])
-    both = _cameras_at([(0.3, 3.0, 0.3), (-0.3, 3.0, -0.3), (0.3, -3.0, 0.3), (-0.3, -3.0, -0.3)])
-    still, count = offset_toward_views(sheet, both, 0.01, tol=1e-3)
-    assert count == 0 and np.array_equal(still.vertices, sheet.vertices)
-    # three cameras of four above is not one-sided enough at 0.9, enough at 0.7
-    mostly = _cameras_at([(0.3, 3.0, 0.3), (-0.3, 3.0, 0.3), (0.3, 3.0, -0.3), (-0.3, -3.0, -0.3)])
-    assert offset_toward_views(sheet, mostly, 0.01, tol=1e-3)[1] == 0
-    assert offset_toward_views(sheet, mostly, 0.01, tol=1e-3, one_sided=0.7)[1] == len(sheet.vertices)
-
-
-def test_the_view_offset_is_neudfs_mean_weight_depth_for_the_exp_varsigma_only(tiny_scene, tmp_path):
-    from neudf_core.meshing import rendered_depth_bias
-    from neudf_core.trainer import load_model, train
-
-    run = tmp_path / "run"
-    train(tiny_scene, run, preset="quick", iters=2, overrides=TINY)
-    model = load_model(run)
-    assert model.cfg.renderer.varsigma == "exp"
-    # two iterations cannot lift r from 20 to the floor's end (400): the floor sets it
-    assert rendered_depth_bias(model) == pytest.approx(1.0 / model.cfg.renderer.sharpness_floor_end)
-    model.trained_iters = 1  # half way through a two-iteration schedule: the floor's geometric midpoint
-    r0, r1 = model.cfg.renderer.sharpness_init, model.cfg.renderer.sharpness_floor_end
-    learned = float(model.sharpness().detach())
-    assert rendered_depth_bias(model) == pytest.approx(1.0 / max(learned, (r0 * r1) ** 0.5))
-    for other in ({"varsigma": "rational"}, {"weight": "neus_abs"}, {"weight": "neus_sdf"}):
-        model.cfg = model.cfg.model_copy(update={"renderer": model.cfg.renderer.model_copy(update=other)})
-        assert rendered_depth_bias(model) is None, other
 
 
 def test_mesh_run_end_to_end_on_a_trained_run(tiny_scene, tmp_path):

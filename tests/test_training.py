@@ -24,17 +24,12 @@ def _metrics(run):
     return [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
 
 
-@pytest.fixture(scope="module")
-def quick_run(sheet_scene, tmp_path_factory):
-    """(run folder, train's result): the quick preset with fewer rays and samples, about a minute on 2 cores."""
-    run = tmp_path_factory.mktemp("quick") / "run"
+def test_quick_preset_learns_the_scene(sheet_scene, tmp_path):
+    run = tmp_path / "run"
+    # The quick preset with fewer rays and samples, so that the test takes about a minute on 2 cores.
     overrides = {"data": {"white_background": True}, "log": {"log_every": 10},
                  "optim": {"rays": 128}, "sampler": {"n_coarse": 24, "n_importance": 16}}
-    return run, train(sheet_scene, run, preset="quick", iters=120, overrides=overrides)
-
-
-def test_quick_preset_learns_the_scene(quick_run):
-    run, result = quick_run
+    result = train(sheet_scene, run, preset="quick", iters=120, overrides=overrides)
     rows = _metrics(run)
     assert [r["iter"] for r in rows] == list(range(10, 121, 10))
     first, last = rows[0], np.mean([r["psnr"] for r in rows[-2:]])
@@ -46,23 +41,6 @@ def test_quick_preset_learns_the_scene(quick_run):
     assert sorted(p.name for p in (run / "validation").glob("*.png"))
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["preset"] == "quick" and cfg["optim"]["iters"] == 120
-
-
-def test_meshing_with_the_cameras_moves_what_they_see_from_one_side_by_one_over_r(quick_run, sheet_scene, tmp_path):
-    from neudf_core.meshing import mesh_run
-
-    run, _ = quick_run
-    # meshudf: our own marching cubes, the same mesh twice (Poisson's threads need not be)
-    plain = mesh_run(run, tmp_path / "plain.ply", method="meshudf", resolution=64, views=sheet_scene, view_offset=False)
-    moved = mesh_run(run, tmp_path / "moved.ply", method="meshudf", resolution=64, views=sheet_scene)
-    info = moved.metadata["meshing"]
-    assert "view_offset" not in plain.metadata["meshing"]
-    assert info["view_offset"] == pytest.approx(1.0 / 400.0)  # quick's r floor ends at 400 (exp varsigma)
-    assert len(moved.vertices) == len(plain.vertices)
-    shift = np.linalg.norm(moved.vertices - plain.vertices, axis=1)
-    on = np.isclose(shift, info["view_offset"], rtol=1e-4)
-    assert (on | (shift < 1e-9)).all()
-    assert on.sum() == info["vertices_offset"] > 0
 
 
 def test_training_resumes_from_its_last_checkpoint(sheet_scene, tmp_path):

@@ -166,8 +166,7 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
                 ". Train longer or lower mesh_min_seen (0 keeps every face)." if "no face is seen" in str(exc) else "")
         raise StageError("mesh", f"{exc}{hint}") from exc
     info = mesh.metadata.get("meshing", {})
-    return {f"mesh_{k}": info[k] for k in ("method", "resolution", "threshold", "faces_unseen", "view_offset",
-                                          "vertices_offset") if k in info}
+    return {f"mesh_{k}": info[k] for k in ("method", "resolution", "threshold", "faces_unseen") if k in info}
 
 
 def _export(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
