@@ -20,6 +20,8 @@ differences the paper is about.
     .venv/bin/python bench/quality.py --jobs 2 --methods neudf --rows-from bench/results/quality_quick.json
     # where two methods are within a single run's spread: several seeds, a mean per mesh
     .venv/bin/python bench/quality.py --jobs 2 --meshes pants tshirt --methods neudf neus_sdf --seeds 0 1 2
+    # a table trained in parts (other meshes, methods or seeds per report): join the reports, train nothing
+    .venv/bin/python bench/quality.py --iters 4000 --methods --rows-from A.json B.json --out joined.json
 """
 
 from __future__ import annotations
@@ -232,8 +234,8 @@ UNSIGNED_ONLY = {"field.output", "loss.zero_region_weight", "loss.zero_region_ma
 _COMPARABLE = ("preset", "iters", "views", "size", "max_size", "udf_mesh_method", "background", "resolution", "samples")
 
 
-def reused_rows(path: Path, args: argparse.Namespace, meshes: list[str]) -> list[dict[str, Any]]:
-    """Rows of the methods not run now, from an earlier report made with the same settings."""
+def _report_rows(path: Path, args: argparse.Namespace, meshes: list[str]) -> list[dict[str, Any]]:
+    """The rows of one earlier report for the methods not run now, after checking its settings match."""
     report = json.loads(path.read_text())
     old = report["config"]
     differ = [k for k in _COMPARABLE if old.get(k) != getattr(args, k)]
@@ -241,12 +243,26 @@ def reused_rows(path: Path, args: argparse.Namespace, meshes: list[str]) -> list
         raise SystemExit(f"{path} was made with other settings ({', '.join(f'{k}={old.get(k)}' for k in differ)}); "
                          "its rows cannot share a table with this run")
     # a row already reused keeps naming the report that trained it
-    rows = [dict(r, reused_from=r.get("reused_from", str(path))) for r in report["rows"]
+    return [dict(r, reused_from=r.get("reused_from", str(path))) for r in report["rows"]
             if r["weight"] not in args.methods and r["mesh"] in meshes]
+
+
+def reused_rows(paths: list[Path], args: argparse.Namespace, meshes: list[str]) -> list[dict[str, Any]]:
+    """Rows of the methods not run now, from earlier reports made with the same settings (one report per
+    part of a table that took several sessions to train; a method, mesh and seed may come from one only)."""
+    rows: list[dict[str, Any]] = []
+    for path in paths:
+        for r in _report_rows(path, args, meshes):
+            twin = next((o for o in rows if (o["mesh"], o["weight"], o.get("seed", 0))
+                         == (r["mesh"], r["weight"], r.get("seed", 0))), None)
+            if twin is not None:
+                raise SystemExit(f"{r['mesh']}/{r['label']}, seed {r.get('seed', 0)} is in both "
+                                 f"{twin['reused_from']} and {r['reused_from']}; pass one of them")
+            rows.append(r)
     for r in rows:
         if "train_config" not in r:
-            print(f"note: {path} does not record its training configuration; {r['mesh']}/{r['label']} is "
-                  "reused on the report's settings alone")
+            print(f"note: {r['reused_from']} does not record its training configuration; {r['mesh']}/{r['label']} "
+                  "is reused on the report's settings alone")
             continue
         now = resolved_config(r["weight"], args)
         ignored = NEUDF_ONLY if r["weight"] != "neudf" else set()
@@ -261,7 +277,7 @@ def reused_rows(path: Path, args: argparse.Namespace, meshes: list[str]) -> list
     missing = [(m, w) for m in meshes for w in METHODS if w not in args.methods
                and not any(r["mesh"] == m and r["weight"] == w for r in rows)]
     if missing:
-        raise SystemExit(f"{path} has no rows for {missing}")
+        raise SystemExit(f"{', '.join(map(str, paths))} have no rows for {missing}")
     return rows
 
 
@@ -306,11 +322,14 @@ def main() -> None:
     ap.add_argument("--work-dir", type=Path, default=None, help="keep datasets and runs here (default: temporary)")
     ap.add_argument("--jobs", type=int, default=1,
                     help="trainings at once (CPU: 2 on 2 cores is about 1.5x faster; GPU: keep 1)")
-    ap.add_argument("--rows-from", type=Path, default=None,
-                    help="an earlier report made with the same settings: the methods not in --methods are "
-                         "taken from it (marked reused_from) so that the table is whole")
+    ap.add_argument("--rows-from", type=Path, nargs="+", default=None,
+                    help="earlier reports made with the same settings: the methods not in --methods are taken "
+                         "from them (marked reused_from) so that the table is whole; with --methods and no "
+                         "name, nothing is trained and the reports are joined into one table")
     ap.add_argument("--out", type=Path, default=None, help="JSON file (default: bench/results/quality_<preset>.json)")
     args = ap.parse_args()
+    if not args.methods and not args.rows_from:
+        ap.error("--methods names no method and there is no --rows-from: nothing to train or to show")
 
     meshes = find_meshes(args.meshes)
     reused = reused_rows(args.rows_from, args, [p.stem for p in meshes]) if args.rows_from else []
@@ -318,7 +337,7 @@ def main() -> None:
     started = time.time()
     try:
         jobs = []
-        for path in meshes:
+        for path in meshes if args.methods else []:
             source = trimesh.load(path, process=False, force="mesh")
             data = synthetic.write_neus_dataset(work / path.stem / "data", source, n_views=args.views,
                                                 size=args.size, background=args.background)
@@ -336,7 +355,8 @@ def main() -> None:
     print()
     print_table(rows, [w for w in METHODS if any(r["weight"] == w for r in rows)])
     if reused:
-        print(f"rows of {', '.join(sorted({METHODS[r['weight']][0] for r in reused}))} reused from {args.rows_from}")
+        print(f"rows of {', '.join(sorted({METHODS[r['weight']][0] for r in reused}))} reused from "
+              f"{', '.join(map(str, args.rows_from))}")
     out = args.out or ROOT / "bench" / "results" / f"quality_{args.preset}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     report = {
