@@ -49,6 +49,7 @@ from neudf_core import synthetic  # noqa: E402
 from neudf_core.config import deep_merge, load_config  # noqa: E402
 from neudf_core.meshing import mesh_run  # noqa: E402
 from neudf_core.metrics import boundary_loops, evaluate  # noqa: E402
+from neudf_core.numerics import flush_denormals  # noqa: E402
 from neudf_core.trainer import fit_schedule_to_iters, train  # noqa: E402
 
 MESH_DIR = ROOT.parent / "shared" / "data" / "meshes"
@@ -155,6 +156,7 @@ _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
 def _init_worker(threads: int) -> None:
+    flush_denormals()  # before the thread pool starts, so its threads take the mode
     torch.set_num_threads(threads)
     # Killing the bench (kill PID, not Ctrl-C, which reaches the whole process group) would otherwise leave
     # its workers training on, half the CPU each, into folders a rerun then shares with them.

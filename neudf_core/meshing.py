@@ -53,6 +53,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from neudf_core.dataset import Cameras, load_cameras
 from neudf_core.metrics import split_pinched_vertices
+from neudf_core.numerics import flush_denormals
 from neudf_core.progress import ProgressFn, null_progress, sub_progress
 
 log = logging.getLogger(__name__)
@@ -1027,6 +1028,7 @@ def mesh_run(
 
     if Path(out_path).suffix.lower() not in SUFFIXES:
         raise ValueError(f"unknown mesh format {Path(out_path).suffix!r}: use one of {', '.join(SUFFIXES)}")
+    flush_denormals()
     model = load_model(run_dir, device)
     model.eval()
     signed = bool(getattr(model, "signed", False))

@@ -21,6 +21,7 @@ from neudf_core import losses
 from neudf_core.config import RendererConfig, TrainConfig, load_config
 from neudf_core.dataset import Dataset, load_dataset
 from neudf_core.model import NeUDFModel, RenderState
+from neudf_core.numerics import flush_denormals
 from neudf_core.progress import ProgressFn, null_progress
 
 log = logging.getLogger(__name__)
@@ -275,6 +276,7 @@ def train(
 ) -> dict[str, Any]:
     """Train NeUDF on a NeuS-layout dataset into ``run_dir``; resumes from the run's last checkpoint."""
     device = _check_device(device)
+    flush_denormals()
     run_dir = Path(run_dir)
     cfg = fit_schedule_to_iters(load_config(preset, overrides), iters)
     cfg_file = run_dir / "config.json"

@@ -234,3 +234,35 @@ def test_training_renders_with_r_at_or_above_its_floor(sheet_scene, tmp_path):
         # a row averages the r its 5 steps rendered with; the floor only rises, so its first step bounds it
         assert row["sharpness"] >= sharpness_floor(row["iter"] - 5, cfg.renderer, 20) * (1 - 1e-5), row
     assert _metrics(tmp_path / "run")[-1]["sharpness"] > 500.0  # r starts at 20; 20 Adam steps cannot reach 500
+
+
+_DENORMALS = """
+import sys, torch
+{setup}
+torch.set_num_threads(2)
+x = torch.full((1 << 20,), 1e-20)
+print(int(((x * 1e-20) != 0).sum()))  # 1e-40 is a float32 denormal unless flushed
+"""
+
+
+def _denormals_left(setup: str) -> int:
+    import subprocess
+    import sys
+
+    code = _DENORMALS.format(setup=setup)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return int(out.stdout.split()[-1])
+
+
+def test_training_flushes_denormals_on_every_compute_thread(sheet_scene, tmp_path):
+    """exp(-r d) underflows into denormals away from the surface, and a CPU computing with them made late
+    steps 2.5x slower; train() flushes them in its thread and in the compute threads it starts."""
+    import torch
+
+    if not torch.set_flush_denormal(False):  # a CPU without the mode: nothing to check
+        pytest.skip("this CPU has no flush-to-zero mode")
+    assert _denormals_left("") > 0  # the default mode keeps them, so the check below can fail
+    trained = (f"from neudf_core.trainer import train\n"
+               f"train({str(sheet_scene)!r}, {str(tmp_path / 'run')!r}, preset='quick', iters=2, "
+               f"overrides={{'data': {{'white_background': True}}}})")
+    assert _denormals_left(trained) == 0

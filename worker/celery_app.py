@@ -189,4 +189,7 @@ def run_worker(app: Celery, *, loglevel: str = "INFO", hostname: str | None = No
     ]
     if hostname:
         argv.append(f"--hostname={hostname}")
+    from neudf_core.numerics import flush_denormals  # torch stays out of the API's imports
+
+    flush_denormals()  # the pool's forked children and their compute threads inherit the mode
     app.worker_main(argv)
