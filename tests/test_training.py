@@ -237,7 +237,7 @@ def test_training_renders_with_r_at_or_above_its_floor(sheet_scene, tmp_path):
 
 
 _DENORMALS = """
-import sys, torch
+import torch
 {setup}
 torch.set_num_threads(2)
 x = torch.full((1 << 20,), 1e-20)
