@@ -12,16 +12,16 @@ Images are rendered at --size and trained at that size (the preset's downscaling
 96 px a pixel is 2% of the object and every method's error is about one pixel, which hides the
 differences the paper is about.
 
-    .venv/bin/python bench/quality.py --jobs 2                               # CPU: quick, 2000 iterations, 192 px
+    .venv/bin/python bench/quality.py --jobs 2                               # CPU: quick, 4000 iterations, 192 px
     .venv/bin/python bench/quality.py --preset fast --device cuda --views 64 --size 256 --iters 20000
     .venv/bin/python bench/quality.py --meshes diffavatar_tshirt --iters 5   # a smoke run
     # after a change that touches NeUDF only: train it alone, take the baselines' rows from the last table
     # (a variant that is not in the preset: --set renderer.sharpness_floor_end=1600)
-    .venv/bin/python bench/quality.py --jobs 2 --methods neudf --rows-from bench/results/quality_quick.json
+    .venv/bin/python bench/quality.py --jobs 2 --methods neudf --rows-from bench/results/quality_quick_4000.json
     # where two methods are within a single run's spread: several seeds, a mean per mesh
     .venv/bin/python bench/quality.py --jobs 2 --meshes pants tshirt --methods neudf neus_sdf --seeds 0 1 2
     # a table trained in parts (other meshes, methods or seeds per report): join the reports, train nothing
-    .venv/bin/python bench/quality.py --iters 4000 --methods --rows-from A.json B.json --out joined.json
+    .venv/bin/python bench/quality.py --methods --rows-from A.json B.json --out joined.json
 """
 
 from __future__ import annotations
@@ -297,7 +297,9 @@ def _json_safe(value: Any) -> Any:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="quick", help="quick (CPU), fast or paper (GPU)")
-    ap.add_argument("--iters", type=int, default=2000, help="iterations per method (0: the preset's)")
+    ap.add_argument("--iters", type=int, default=4000,
+                    help="iterations per method (0: the preset's); at 2000 NeUDF's pants had not covered the "
+                         "inner leg walls yet (bench/results/quality_quick_4000_pants.json)")
     ap.add_argument("--meshes", nargs="*", default=None, help="names in ../shared/data/meshes or paths (default: all)")
     ap.add_argument("--views", type=int, default=48, help="rendered views per scene")
     ap.add_argument("--size", type=int, default=192, help="image size in pixels")
@@ -328,7 +330,8 @@ def main() -> None:
                     help="earlier reports made with the same settings: the methods not in --methods are taken "
                          "from them (marked reused_from) so that the table is whole; with --methods and no "
                          "name, nothing is trained and the reports are joined into one table")
-    ap.add_argument("--out", type=Path, default=None, help="JSON file (default: bench/results/quality_<preset>.json)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="JSON file (default: bench/results/quality_<preset>_<iters>.json)")
     args = ap.parse_args()
     if not args.methods and not args.rows_from:
         ap.error("--methods names no method and there is no --rows-from: nothing to train or to show")
@@ -359,7 +362,7 @@ def main() -> None:
     if reused:
         print(f"rows of {', '.join(sorted({METHODS[r['weight']][0] for r in reused}))} reused from "
               f"{', '.join(map(str, args.rows_from))}")
-    out = args.out or ROOT / "bench" / "results" / f"quality_{args.preset}.json"
+    out = args.out or ROOT / "bench" / "results" / f"quality_{args.preset}_{args.iters}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     report = {
         "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
