@@ -71,8 +71,11 @@ def user_errors() -> Iterator[None]:
 def train_command(
     data: Annotated[Path, typer.Argument(help="dataset folder in the NeuS layout (image/, cameras_sphere.npz)")],
     out: Annotated[Path, typer.Option("--out", help="run folder: config.json, checkpoints/, metrics.jsonl, validation/")],
-    preset: Annotated[str, typer.Option(help="paper (the paper's settings, hours on a GPU), quick (CPU-sized)")] = "quick",
-    iters: Annotated[int | None, typer.Option(help="iterations (default: the preset's); schedule shrinks to fit")] = None,
+    preset: Annotated[str | None, typer.Option(help="quick (CPU-sized), fast, gpu, paper (the paper's settings, hours "
+                                                    "on a GPU); default quick on cpu, gpu on cuda")] = None,
+    minutes: Annotated[float | None, typer.Option(help="training budget in minutes; schedules end with it")] = None,
+    iters: Annotated[int | None, typer.Option(help="iterations (default: the preset's, or as many as --minutes "
+                                                   "allows); schedule shrinks to fit")] = None,
     device: Annotated[Device, typer.Option(help="cpu or cuda")] = Device.cpu,
     masks: Annotated[bool, typer.Option("--masks/--no-masks", help="use mask/*.png (BCE loss, no background model)")] = False,
     white_background: Annotated[bool, typer.Option(help="images have a plain white background (no NeRF++)")] = False,
@@ -88,7 +91,7 @@ def train_command(
     if white_background:
         overrides.setdefault("data", {})["white_background"] = True
     with user_errors(), progress_bar("training") as report:
-        result = train(data, out, preset=preset, iters=iters, device=device.value, progress=report,
+        result = train(data, out, preset=preset, iters=iters, minutes=minutes, device=device.value, progress=report,
                        overrides=overrides)
     typer.echo(json.dumps(result))
 

@@ -134,10 +134,16 @@ class OptimConfig(_Block):
     iters: int = 400_000
     rays: int = 512
     images_per_batch: int = 8
+    object_rays: float = Field(0.0, ge=0, le=1, description="share of each batch's rays drawn from pixels whose "
+                               "rays meet the unit sphere (the rest uniformly): 0 is the paper's uniform draw")
 
 
 class DataConfig(_Block):
     max_size: int = Field(0, description="downscale images to this longest side for training (0 = keep)")
+    sphere_px: int = Field(0, ge=0, description="downscale images so the unit sphere is about this many pixels "
+                           "across (0 = keep): the object's extent, not the frame's, sets the resolution")
+    floor_y: float | None = Field(None, description="height (unit sphere, y up) below which nothing is object; "
+                                  "taken from the dataset's region.json, not set by hand")
     use_masks: bool = False
     white_background: bool = False
 
@@ -165,6 +171,15 @@ class TrainConfig(_Block):
 
 def available_presets() -> list[str]:
     return sorted(p.stem for p in PRESET_DIR.glob("*.json"))
+
+
+# What a job trains with when the user names no preset: the same budget in minutes buys a larger model on a GPU.
+DEVICE_PRESETS = {"cpu": "quick", "cuda": "gpu"}
+
+
+def default_preset(device: str) -> str:
+    """The preset for ``device`` ("cpu", "cuda", "cuda:N")."""
+    return DEVICE_PRESETS["cuda" if device.startswith("cuda") else "cpu"]
 
 
 def deep_merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:

@@ -8,6 +8,7 @@ never assumed diagonal.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +23,9 @@ class DatasetError(ValueError):
     """A dataset folder that cannot be used, with the reason in words."""
 
 
+REGION_FILE = "region.json"  # optional: {"floor_y": height in the unit sphere (y up) below which lies no object}
+
+
 @dataclass
 class Dataset:
     images: Tensor  # (N, H, W, 3) float 0..1
@@ -29,6 +33,8 @@ class Dataset:
     intrinsics: Tensor  # (N, 3, 3) in pixels of ``images``
     c2w: Tensor  # (N, 4, 4), OpenCV camera to unit-sphere world
     names: list[str]
+    floor_y: float | None = None
+    object_pixels: Tensor | None = None  # flat (image, y, x) indices of the pixels whose rays meet the unit sphere
 
     @property
     def n_images(self) -> int:
@@ -44,7 +50,9 @@ class Dataset:
 
     def to(self, device: str | torch.device) -> "Dataset":
         masks = self.masks.to(device) if self.masks is not None else None
-        return Dataset(self.images.to(device), masks, self.intrinsics.to(device), self.c2w.to(device), self.names)
+        pixels = self.object_pixels.to(device) if self.object_pixels is not None else None
+        return Dataset(self.images.to(device), masks, self.intrinsics.to(device), self.c2w.to(device), self.names,
+                       self.floor_y, pixels)
 
     def rays(self, image_idx: Tensor, pixel_y: Tensor, pixel_x: Tensor) -> tuple[Tensor, Tensor]:
         """World-space origins and unit directions through pixel centres."""
@@ -54,14 +62,41 @@ class Dataset:
         dirs = (c2w[:, :3, :3] @ dirs_cam[..., None])[..., 0]
         return c2w[:, :3, 3], dirs / dirs.norm(dim=-1, keepdim=True)
 
-    def sample_rays(self, n_rays: int, images_per_batch: int, generator: torch.Generator | None = None) -> dict:
-        """n random rays from ``images_per_batch`` random images (the paper: 512 rays from 8 images)."""
+    def find_object_pixels(self) -> None:
+        """Mark the pixels whose rays meet the unit sphere: only those can see the object."""
+        found = []
+        ys, xs = torch.meshgrid(torch.arange(self.height), torch.arange(self.width), indexing="ij")
+        ys, xs = ys.reshape(-1).to(self.images.device), xs.reshape(-1).to(self.images.device)
+        for i in range(self.n_images):
+            origin, dirs = self.rays(torch.full_like(ys, i), ys, xs)
+            # |o + t d| = 1 has a solution when the ray's closest approach to the centre is inside the sphere
+            along = (origin * dirs).sum(-1)
+            closest = (origin * origin).sum(-1) - along**2
+            hit = torch.nonzero(closest < 1.0)[:, 0]
+            found.append(i * self.height * self.width + hit)
+        self.object_pixels = torch.cat(found)
+
+    def sample_rays(self, n_rays: int, images_per_batch: int, generator: torch.Generator | None = None,
+                    object_share: float = 0.0) -> dict:
+        """n random rays from ``images_per_batch`` random images (the paper: 512 rays from 8 images).
+
+        ``object_share`` of them come from pixels whose rays meet the unit sphere (all images); the rest of
+        a video's frame shows only the surroundings, which the background model alone learns from.
+        """
         device = self.images.device
+        n_object = int(round(n_rays * object_share)) if self.object_pixels is not None else 0
+        n_any = n_rays - n_object
         k = min(images_per_batch, self.n_images) if images_per_batch > 0 else self.n_images
         chosen = torch.randperm(self.n_images, generator=generator)[:k].to(device)
-        image_idx = chosen[torch.randint(0, k, (n_rays,), generator=generator).to(device)]
-        y = torch.randint(0, self.height, (n_rays,), generator=generator).to(device)
-        x = torch.randint(0, self.width, (n_rays,), generator=generator).to(device)
+        image_idx = chosen[torch.randint(0, k, (n_any,), generator=generator).to(device)]
+        y = torch.randint(0, self.height, (n_any,), generator=generator).to(device)
+        x = torch.randint(0, self.width, (n_any,), generator=generator).to(device)
+        if n_object:
+            pick = torch.randint(0, len(self.object_pixels), (n_object,), generator=generator).to(device)
+            flat = self.object_pixels[pick]
+            image_idx = torch.cat([image_idx, flat // (self.height * self.width)])
+            y = torch.cat([y, flat // self.width % self.height])
+            x = torch.cat([x, flat % self.width])
         rays_o, rays_d = self.rays(image_idx, y, x)
         batch = {"rays_o": rays_o, "rays_d": rays_d, "color": self.images[image_idx, y, x]}
         if self.masks is not None:
@@ -148,8 +183,41 @@ def load_cameras(root: str | Path) -> Cameras:
     return Cameras(np.stack(Ks), np.stack(c2ws), width, height)
 
 
-def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False) -> Dataset:
-    """Read a NeuS-layout folder; ``max_size`` > 0 downsizes images (and intrinsics) for training."""
+def sphere_diameter_px(projections: list[np.ndarray]) -> float:
+    """Median over the views of the unit sphere's diameter in pixels (the object's extent, for sizing images)."""
+    sizes = []
+    for P in projections:
+        K, c2w = decompose_projection(P)
+        distance = max(float(np.linalg.norm(c2w[:3, 3])), 1.0 + 1e-6)
+        sizes.append(2.0 * K[0, 0] / np.sqrt(distance**2 - 1.0))
+    return float(np.median(sizes))
+
+
+def training_scale(width: int, height: int, projections: list[np.ndarray], max_size: int, sphere_px: int) -> float:
+    """The factor training images are scaled by: no upscaling, the longest side at most ``max_size`` and the
+    unit sphere about ``sphere_px`` across (each 0 = no limit)."""
+    scale = 1.0
+    if max_size > 0:
+        scale = min(scale, max_size / max(width, height))
+    if sphere_px > 0:
+        scale = min(scale, sphere_px / sphere_diameter_px(projections))
+    return scale
+
+
+def read_floor(root: str | Path) -> float | None:
+    path = Path(root) / REGION_FILE
+    if not path.is_file():
+        return None
+    try:
+        value = json.loads(path.read_text()).get("floor_y")
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"cannot read {path}: {exc}") from exc
+    return None if value is None else float(value)
+
+
+def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False, sphere_px: int = 0) -> Dataset:
+    """Read a NeuS-layout folder; ``max_size`` > 0 and ``sphere_px`` > 0 downsize images (and intrinsics) for
+    training (see :func:`training_scale`)."""
     root = Path(root)
     image_paths = _image_paths(root)
     projections = _projections(root, len(image_paths))
@@ -161,7 +229,7 @@ def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False) -
 
     first = Image.open(image_paths[0])
     width, height = first.size
-    scale = min(1.0, max_size / max(width, height)) if max_size > 0 else 1.0
+    scale = training_scale(width, height, projections, max_size, sphere_px)
     size = (max(1, round(width * scale)), max(1, round(height * scale)))
     images, masks, Ks, c2ws = [], [], [], []
     for i, path in enumerate(image_paths):
@@ -183,4 +251,5 @@ def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False) -
         intrinsics=as_t(Ks),
         c2w=as_t(c2ws),
         names=[p.name for p in image_paths],
+        floor_y=read_floor(root),
     )

@@ -1000,11 +1000,23 @@ def color_vertices(
     return mesh
 
 
+def _above(mesh: trimesh.Trimesh, floor_y: float) -> trimesh.Trimesh:
+    """The faces wholly above height ``floor_y``."""
+    keep = mesh.vertices[mesh.faces][:, :, 1].min(axis=1) > floor_y
+    if keep.all():
+        return mesh
+    info = mesh.metadata.get("meshing", {})
+    mesh.update_faces(keep)
+    mesh.remove_unreferenced_vertices()
+    mesh.metadata["meshing"] = {**info, "floor_y": floor_y, "faces_below_floor": int((~keep).sum())}
+    return mesh
+
+
 def mesh_run(
     run_dir: str | Path,
     out_path: str | Path,
     *,
-    method: Method = "meshudf",
+    method: Method | None = None,
     resolution: int = 256,
     threshold: float | None = None,
     min_component_faces: int = 32,
@@ -1032,6 +1044,7 @@ def mesh_run(
     model = load_model(run_dir, device)
     model.eval()
     signed = bool(getattr(model, "signed", False))
+    method = method or ("mc" if signed else "meshudf")
     cameras = load_cameras(views) if views is not None else None  # bad folders fail before the long work
     if signed and method != "mc":
         raise ValueError(f"{run_dir} learned a signed field (the NeuS-SDF baseline): mesh it with method mc")
@@ -1046,6 +1059,9 @@ def mesh_run(
         grad_fn=grad_fn, min_component_faces=min_component_faces, min_component_fraction=min_component_fraction,
         device=device, progress=sub_progress(progress, 0.0, 0.85),
     )
+    floor_y = model.cfg.data.floor_y
+    if floor_y is not None:  # training rendered nothing of the object below the floor: what is there is a guess
+        mesh = _above(mesh, floor_y)
     if cameras is not None:
         progress(0.85, "dropping what no camera sees")
         info = mesh.metadata["meshing"]

@@ -119,6 +119,10 @@ class NeUDFModel(nn.Module):
         alpha = alpha_for_mode(cfg_r.weight, prev, nxt, sharp, cfg_r.varsigma, cfg_r.receding_opacity)
 
         inside = (points.norm(dim=-1) < 1.0).float()
+        if self.cfg.data.floor_y is not None:
+            # Under the floor the scene stage found there is no object: the floor and the shadows on it are
+            # left to the background model, so they cannot become surface.
+            inside = inside * (points[..., 1] > self.cfg.data.floor_y).float()
         if self.background is not None:
             alpha = alpha * inside  # beyond the sphere the background model owns the ray
         weights, transmittance = weights_from_alpha(alpha)

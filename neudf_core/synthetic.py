@@ -15,7 +15,7 @@ from typing import Literal
 
 import numpy as np
 import trimesh
-from PIL import Image
+from PIL import Image, ImageDraw
 
 Background = Literal["white", "black", "env"]
 
@@ -245,6 +245,127 @@ def _bowl(radius: float, n: int) -> trimesh.Trimesh:
     cap = [[centre, ring[(i + 1) % len(ring)], ring[i]] for i in range(len(ring))]
     vertices = np.vstack([mesh.vertices, [[0.0, -radius + radius / 2, 0.0]]])
     return trimesh.Trimesh(vertices, np.vstack([mesh.faces, cap]), process=True)
+
+
+def blob_texture(width: int, height: int, n_blobs: int, size_px: tuple[float, float], seed: int) -> Image.Image:
+    """Random coloured ellipses and rectangles over a soft noise: corners and blobs at many scales for SIFT."""
+    rng = np.random.default_rng(seed)
+    base = rng.integers(60, 200, size=(height // 16 + 1, width // 16 + 1, 3)).astype(np.uint8)
+    image = Image.fromarray(base).resize((width, height), Image.BICUBIC)
+    draw = ImageDraw.Draw(image)
+    for _ in range(n_blobs):
+        size = np.exp(rng.uniform(np.log(size_px[0]), np.log(size_px[1])))
+        x, y = rng.uniform(0, width), rng.uniform(0, height)
+        box = [x, y, x + size * rng.uniform(0.6, 1.6), y + size * rng.uniform(0.6, 1.6)]
+        colour = tuple(int(c) for c in rng.integers(0, 256, 3))
+        (draw.ellipse if rng.random() < 0.5 else draw.rectangle)(box, fill=colour)
+    return image
+
+
+def _textured_quad(corner: np.ndarray, edge_u: np.ndarray, edge_v: np.ndarray, tile: float,
+                   image: Image.Image) -> trimesh.Trimesh:
+    """A rectangle (two triangles) whose texture repeats every ``tile`` units along both edges."""
+    vertices = np.stack([corner, corner + edge_u, corner + edge_u + edge_v, corner + edge_v])
+    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float) * [np.linalg.norm(edge_u) / tile,
+                                                             np.linalg.norm(edge_v) / tile]
+    quad = trimesh.Trimesh(vertices, [[0, 1, 2], [0, 2, 3]], process=False)
+    quad.visual = trimesh.visual.TextureVisuals(uv=uv, image=image)
+    return quad
+
+
+@dataclass
+class Room:
+    """A garment in a furnished room: what a phone video of it sees. ``parts[0]`` is the object."""
+
+    parts: list[trimesh.Trimesh]
+    floor_y: float
+
+
+def room_scene(obj: trimesh.Trimesh, floor_y: float = -1.25, half_size: float = 5.0, height: float = 4.5,
+               seed: int = 0) -> Room:
+    """``obj`` (in its unit sphere) hanging above a textured floor, in a room with textured walls and a few
+    boxes standing about outside the camera path: floors, walls, clutter and the object's shadow are in view."""
+    rng = np.random.default_rng(seed)
+    floor_img = blob_texture(1024, 1024, 1500, (6, 40), seed + 11)
+    wall_img = blob_texture(1024, 1024, 1200, (8, 60), seed + 12)
+    s, y0, y1 = half_size, floor_y, floor_y + height
+    parts = [obj, _textured_quad(np.array([-s, y0, -s]), np.array([0, 0, 2 * s]), np.array([2 * s, 0, 0]), 2.0,
+                                 floor_img)]
+    for corner, edge in (([-s, y0, -s], [2 * s, 0, 0]), ([s, y0, -s], [0, 0, 2 * s]), ([s, y0, s], [-2 * s, 0, 0]),
+                         ([-s, y0, s], [0, 0, -2 * s])):
+        parts.append(_textured_quad(np.array(corner, float), np.array(edge, float), np.array([0, height, 0]), 2.5,
+                                    wall_img))
+    parts.append(_textured_quad(np.array([-s, y1, -s]), np.array([2 * s, 0, 0]), np.array([0, 0, 2 * s]), 3.0,
+                                wall_img))
+    for i, angle in enumerate(rng.uniform(0, 2 * np.pi, 4)):
+        size = rng.uniform(0.4, 0.9, 3)
+        box = trimesh.creation.box(size)
+        box.apply_translation([4.0 * np.sin(angle), floor_y + size[1] / 2, 4.0 * np.cos(angle)])
+        box.visual = trimesh.visual.TextureVisuals(
+            uv=(box.vertices[:, [0, 2]] + box.vertices[:, [1, 1]]) % 1.0,
+            image=blob_texture(256, 256, 120, (6, 30), seed + 20 + i))
+        parts.append(box)
+    return Room(parts, floor_y)
+
+
+def handheld_orbit(n: int, radius: float = 2.5, width: int = 720, height: int = 1280, fov_deg: float = 42.0,
+                   elevation_deg: tuple[float, float] = (8.0, 30.0), seed: int = 0) -> list[Camera]:
+    """One walk around the origin as a hand holds a phone: the distance, height, aim and roll wander smoothly."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / n
+
+    def wander(amplitude: float) -> np.ndarray:  # a few slow sines with random phases, about +-amplitude
+        waves = [np.sin(2 * np.pi * (k * t + rng.uniform())) / k for k in (1, 2, 3, 5)]
+        return amplitude * np.sum(waves, axis=0) / 1.6
+
+    lo, hi = np.radians(elevation_deg)
+    elevation = lo + (hi - lo) * 0.5 * (1 - np.cos(2 * np.pi * t)) + np.radians(wander(2.0))
+    azimuth = 2 * np.pi * t + np.radians(wander(3.0))
+    dist = radius + wander(0.08)
+    K = intrinsics(width, height, fov_deg)
+    cams = []
+    for i in range(n):
+        eye = dist[i] * np.array([np.cos(elevation[i]) * np.sin(azimuth[i]), np.sin(elevation[i]),
+                                  np.cos(elevation[i]) * np.cos(azimuth[i])])
+        aim = np.array([wander(0.05)[i], wander(0.05)[i], wander(0.05)[i]])
+        roll = np.radians(wander(2.0)[i])
+        c2w = look_at(eye, aim)
+        spin = np.array([[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0], [0, 0, 1]])
+        c2w[:3, :3] = c2w[:3, :3] @ spin
+        cams.append(Camera(K.copy(), c2w, width, height))
+    return cams
+
+
+def render_room(room: Room, cameras: list[Camera], seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast a room: images uint8 (N, H, W, 3) and object masks (N, H, W); the object casts a shadow on
+    everything under the light, as a lamp above it would."""
+    scene = trimesh.util.concatenate([trimesh.Trimesh(p.vertices, p.faces, process=False) for p in room.parts])
+    offsets = np.cumsum([0] + [len(p.faces) for p in room.parts])
+    hit_scene = trimesh.ray.ray_pyembree.RayMeshIntersector(scene)
+    occluder = trimesh.ray.ray_pyembree.RayMeshIntersector(room.parts[0])
+    images, masks = [], []
+    for cam in cameras:
+        origins, dirs = cam.rays()
+        tri, ray, loc = hit_scene.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+        rgb = np.zeros((len(dirs), 3))
+        part = np.searchsorted(offsets, tri, side="right") - 1
+        shade = 0.55 + 0.45 * np.abs(scene.face_normals[tri] @ _LIGHT_DIR)
+        lit = np.ones(len(ray))
+        behind = part > 0
+        if behind.any():  # shadow rays from what the object may shade, towards the light
+            start = loc[behind] + 1e-4 * _LIGHT_DIR
+            blocked = occluder.intersects_any(start, np.broadcast_to(_LIGHT_DIR, start.shape))
+            lit[np.flatnonzero(behind)[blocked]] = 0.45
+        for k, mesh in enumerate(room.parts):
+            sel = part == k
+            if sel.any():
+                rgb[ray[sel]] = _surface_colour(mesh, tri[sel] - offsets[k], loc[sel], seed)
+        rgb[ray] *= (shade * lit)[:, None]
+        mask = np.zeros(len(dirs), bool)
+        mask[ray[part == 0]] = True
+        images.append((rgb.reshape(cam.height, cam.width, 3) * 255).round().astype(np.uint8))
+        masks.append(mask.reshape(cam.height, cam.width))
+    return np.stack(images), np.stack(masks)
 
 
 def unit_sphere_transform(mesh: trimesh.Trimesh, fill: float = 0.8) -> np.ndarray:

@@ -18,8 +18,8 @@ import torch
 from PIL import Image
 
 from neudf_core import losses
-from neudf_core.config import RendererConfig, TrainConfig, load_config
-from neudf_core.dataset import Dataset, load_dataset
+from neudf_core.config import RendererConfig, TrainConfig, default_preset, load_config
+from neudf_core.dataset import Dataset, load_dataset, read_floor
 from neudf_core.model import NeUDFModel, RenderState
 from neudf_core.numerics import flush_denormals
 from neudf_core.progress import ProgressFn, null_progress
@@ -27,6 +27,8 @@ from neudf_core.progress import ProgressFn, null_progress
 log = logging.getLogger(__name__)
 
 KEEP_CHECKPOINTS = 2
+# A run with a time budget and no iteration count stops on time alone.
+BUDGET_MAX_ITERS = 1_000_000
 # What may change when a run is resumed with another --iters: the schedule, not the model.
 _SCHEDULE_FIELDS = {"optim": True, "log": True, "renderer": {"cos_anneal_iters"}, "sampler": {"importance_start_iter"}}
 
@@ -36,9 +38,11 @@ class RunError(ValueError):
 
 
 # -- schedules: pure functions of the step ----------------------------------------------------------
-def learning_rate(step: int, cfg_optim) -> float:
-    """Linear warm-up to lr, then cosine decay to lr * lr_end_factor at the last iteration."""
-    lr, warm, total = cfg_optim.lr, cfg_optim.warmup_iters, cfg_optim.iters
+def learning_rate(step: int, cfg_optim, total: int | None = None) -> float:
+    """Linear warm-up to lr, then cosine decay to lr * lr_end_factor at the last iteration (``total``,
+    default the configured iterations; a run with a time budget passes the iterations it expects to reach)."""
+    lr, warm = cfg_optim.lr, cfg_optim.warmup_iters
+    total = cfg_optim.iters if total is None else total
     if warm > 0 and step < warm:
         return lr * (step + 1) / warm
     progress = min(1.0, (step - warm) / max(1, total - warm))
@@ -109,6 +113,8 @@ class Trainer:
         self.model = NeUDFModel(cfg).to(device)
         self.optimizer = torch.optim.Adam(self._param_groups(), lr=cfg.optim.lr)
         self.step = 0
+        self.total = cfg.optim.iters  # the last iteration the schedules aim at; a time budget re-plans it
+        self.elapsed_s = 0.0  # training seconds over every session of this run (a budget counts them all)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         bg = 1.0 if cfg.data.white_background else 0.0
         self.bg_color = torch.full((1, 3), bg, device=device)
@@ -130,7 +136,8 @@ class Trainer:
         path = folder / f"ckpt_{self.step:07d}.pt"
         tmp = path.with_suffix(".tmp")
         torch.save({"iter": self.step, "model": self.model.state_dict(),
-                    "optimizer": self.optimizer.state_dict(), "rng": self.generator.get_state()}, tmp)
+                    "optimizer": self.optimizer.state_dict(), "rng": self.generator.get_state(),
+                    "elapsed_s": self.elapsed_s}, tmp)
         tmp.replace(path)  # a reader never sees half a checkpoint
         for old in _checkpoints(self.run_dir)[:-KEEP_CHECKPOINTS]:
             old.unlink(missing_ok=True)
@@ -145,6 +152,7 @@ class Trainer:
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["rng"])
         self.step = state["iter"]
+        self.elapsed_s = float(state.get("elapsed_s", 0.0))
         log.info("resumed %s at iteration %d", self.run_dir, self.step)
         return True
 
@@ -156,15 +164,16 @@ class Trainer:
             perturb=training,
             importance=self.step >= cfg.sampler.importance_start_iter,
             with_grad=training,
-            sharpness_floor=sharpness_floor(self.step, cfg.renderer, cfg.optim.iters),
+            sharpness_floor=sharpness_floor(self.step, cfg.renderer, self.total),
         )
 
     def train_step(self) -> dict[str, float]:
         cfg = self.cfg
-        lr = learning_rate(self.step, cfg.optim)
+        lr = learning_rate(self.step, cfg.optim, self.total)
         for group in self.optimizer.param_groups:
             group["lr"] = lr * group["lr_scale"]
-        batch = self.data.sample_rays(cfg.optim.rays, cfg.optim.images_per_batch, self.generator)
+        batch = self.data.sample_rays(cfg.optim.rays, cfg.optim.images_per_batch, self.generator,
+                                      cfg.optim.object_rays)
         amp = cfg.optim.amp and self.device.startswith("cuda")
         with torch.autocast("cuda" if amp else "cpu", dtype=torch.bfloat16, enabled=amp):
             out = self.model.render(batch["rays_o"], batch["rays_d"], self.render_state(True), self.bg_color)
@@ -222,38 +231,62 @@ class Trainer:
         return path
 
     # -- the loop -----------------------------------------------------------------------------------
-    def fit(self, progress: ProgressFn = null_progress) -> dict[str, Any]:
+    def _plan(self, budget_s: float | None, session_start: int, session_s: float) -> None:
+        """Re-plan the last iteration from the speed so far, so the schedules end when the budget does."""
+        if budget_s is None:
+            return
+        done = self.step - session_start
+        if done < 5:  # the first steps are slow (allocation, caches): no speed to trust yet
+            return
+        remaining = max(budget_s - self.elapsed_s, 0.0)
+        planned = self.step + int(remaining / (session_s / done))
+        self.total = max(self.step + 1, min(self.cfg.optim.iters, planned))
+
+    def fit(self, progress: ProgressFn = null_progress, budget_s: float | None = None) -> dict[str, Any]:
+        """Train to ``cfg.optim.iters``, or until ``budget_s`` seconds of training (over all sessions) are spent."""
         cfg = self.cfg
-        total = cfg.optim.iters
         metrics_file = self.run_dir / "metrics.jsonl"
         start_step, t0 = self.step, time.perf_counter()
+        elapsed_before = self.elapsed_s
         window: list[dict[str, float]] = []
         last: dict[str, Any] = {}
-        while self.step < total:
+        stopped_by = "iters"
+        while self.step < min(self.total, cfg.optim.iters):
             stats = self.train_step()
             window.append(stats)
-            elapsed = time.perf_counter() - t0
+            session_s = time.perf_counter() - t0
+            self.elapsed_s = elapsed_before + session_s
+            self._plan(budget_s, start_step, session_s)
+            out_of_time = budget_s is not None and self.elapsed_s >= budget_s
+            if out_of_time:
+                self.total, stopped_by = self.step, "budget"
             done = self.step - start_step
-            eta = elapsed / done * (total - self.step)
-            progress(self.step / total, f"iteration {self.step}/{total}", iter=self.step, loss=stats["loss"],
+            eta = (max(budget_s - self.elapsed_s, 0.0) if budget_s is not None
+                   else session_s / done * (self.total - self.step))
+            fraction = min(self.elapsed_s / budget_s, 1.0) if budget_s is not None else self.step / self.total
+            progress(fraction, f"iteration {self.step}/{self.total}", iter=self.step, loss=stats["loss"],
                      psnr=stats["psnr"], r=stats["sharpness"], s=cfg.sampler.s0, eta_s=eta)
-            if self.step % cfg.log.log_every == 0 or self.step == total:
+            final = self.step >= self.total
+            if self.step % cfg.log.log_every == 0 or final:
                 last = {k: float(np.mean([w[k] for w in window])) for k in window[0]}
-                last.update(iter=self.step, elapsed_s=round(elapsed, 3),
-                            rays_per_s=round(done * cfg.optim.rays / max(elapsed, 1e-9), 1))
+                last.update(iter=self.step, elapsed_s=round(self.elapsed_s, 3),
+                            rays_per_s=round(done * cfg.optim.rays / max(session_s, 1e-9), 1))
                 with metrics_file.open("a") as fh:
                     fh.write(json.dumps(last) + "\n")
                 log.info("iter %d loss %.4f psnr %.2f r %.3g", self.step, last["loss"], last["psnr"],
                          last["sharpness"])
                 window = []
-            if self.step % cfg.log.ckpt_every == 0 or self.step == total:
+            if self.step % cfg.log.ckpt_every == 0 or final:
                 self.save()
-            if self.step % cfg.log.val_every == 0 or self.step == total:
+            if self.step % cfg.log.val_every == 0 or final:
                 self.validate(index=(self.step // max(cfg.log.val_every, 1)) % self.data.n_images)
-        elapsed = time.perf_counter() - t0
-        return {"iters": self.step, "seconds": round(elapsed, 2), "run_dir": str(self.run_dir),
-                "psnr": last.get("psnr"), "loss": last.get("loss"), "sharpness": last.get("sharpness"),
-                "iters_per_s": round((self.step - start_step) / max(elapsed, 1e-9), 3)}
+        if budget_s is not None and self.elapsed_s >= budget_s:
+            stopped_by = "budget"
+        session_s = time.perf_counter() - t0
+        return {"iters": self.step, "seconds": round(session_s, 2), "train_s": round(self.elapsed_s, 2),
+                "run_dir": str(self.run_dir), "psnr": last.get("psnr"), "loss": last.get("loss"),
+                "sharpness": last.get("sharpness"), "stopped_by": stopped_by,
+                "iters_per_s": round((self.step - start_step) / max(session_s, 1e-9), 3)}
 
 
 def _check_device(device: str) -> str:
@@ -268,28 +301,47 @@ def train(
     data_dir: str | Path,
     run_dir: str | Path,
     *,
-    preset: str = "quick",
+    preset: str | None = None,
     iters: int | None = None,
+    minutes: float | None = None,
     device: str = "cpu",
     progress: ProgressFn = null_progress,
     overrides: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Train NeUDF on a NeuS-layout dataset into ``run_dir``; resumes from the run's last checkpoint."""
+    """Train NeUDF on a NeuS-layout dataset into ``run_dir``; resumes from the run's last checkpoint.
+
+    ``preset``: default the device's (quick on a CPU, gpu on CUDA).
+    ``minutes``: a training budget (wall clock, over every session of the run); the learning-rate and
+    sharpness schedules are planned from the speed measured as it trains, so they end with the budget.
+    With a budget and no ``iters`` the run stops on time alone; with both, at whichever comes first.
+    """
     device = _check_device(device)
+    preset = preset or default_preset(device)
     flush_denormals()
     run_dir = Path(run_dir)
+    if minutes is not None and minutes <= 0:
+        raise ValueError(f"--minutes must be positive, got {minutes}")
+    if minutes is not None and iters is None:
+        iters = BUDGET_MAX_ITERS
     cfg = fit_schedule_to_iters(load_config(preset, overrides), iters)
+    floor = read_floor(data_dir)
+    if floor is not None and cfg.data.floor_y is None:
+        cfg = cfg.model_copy(update={"data": cfg.data.model_copy(update={"floor_y": floor})})
     cfg_file = run_dir / "config.json"
     if cfg_file.is_file() and _checkpoints(run_dir):
         stored = TrainConfig.model_validate_json(cfg_file.read_text())
         if stored.model_dump(exclude=_SCHEDULE_FIELDS) != cfg.model_dump(exclude=_SCHEDULE_FIELDS):
             raise RunError(f"{run_dir} holds a run with another configuration (preset {stored.preset!r}); "
                            "pick a new --out folder or the same options to resume it")
-    data = load_dataset(data_dir, cfg.data.max_size, cfg.data.use_masks)
+    data = load_dataset(data_dir, cfg.data.max_size, cfg.data.use_masks, cfg.data.sphere_px)
+    if cfg.optim.object_rays > 0:
+        data.find_object_pixels()
     run_dir.mkdir(parents=True, exist_ok=True)
     cfg_file.write_text(cfg.model_dump_json(indent=2))
     trainer = Trainer(data, run_dir, cfg, device)
     trainer.resume()
-    result = trainer.fit(progress)
+    result = trainer.fit(progress, budget_s=minutes * 60 if minutes is not None else None)
     result.update(preset=cfg.preset, images=data.n_images, image_size=[data.width, data.height])
+    if minutes is not None:
+        result["minutes"] = minutes
     return result

@@ -77,8 +77,13 @@ def worker(
 def reconstruct(
     video: Annotated[Path, typer.Argument(help="The video (MP4, MOV, ...).")],
     out: Annotated[Path, typer.Option("--out", help="The mesh to write: .glb, .ply or .obj.")],
-    preset: Annotated[str, typer.Option(help="Training preset: quick, fast or paper.")] = "quick",
-    iters: Annotated[int | None, typer.Option(help="Training iterations (default: the preset's).")] = None,
+    preset: Annotated[str | None, typer.Option(help="Training preset: quick, fast, gpu or paper (default: quick on "
+                                                    "a CPU, gpu on CUDA).")] = None,
+    minutes: Annotated[float | None, typer.Option(help="Training budget in minutes (default 10 unless --iters is given); "
+                                                      "training stops at it or at --iters, whichever comes first.")] = None,
+    iters: Annotated[int | None, typer.Option(help="Training iterations (default: as many as --minutes allows).")] = None,
+    weight: Annotated[str, typer.Option(help="Weight of the volume rendering: neudf, or the closed-surface "
+                                             "baselines neus_sdf and neus_abs.")] = "neudf",
     frames: Annotated[int | None, typer.Option(help="Frames to pick from the video.")] = None,
     work_dir: Annotated[Path | None, typer.Option(help="Stage outputs (kept; run again to resume). Default: OUT's name + '.work'.")] = None,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
@@ -104,7 +109,7 @@ def reconstruct(
     except StageError as exc:
         raise _fail(f"{video.name}: {exc.message}") from None
     try:
-        options = JobOptions(preset=preset, iters=iters, frames=frames, mesh_resolution=mesh_resolution,
+        options = JobOptions(preset=preset, minutes=minutes, iters=iters, weight=weight, frames=frames, mesh_resolution=mesh_resolution,
                              mesh_method=mesh_method, mesh_threshold=mesh_threshold,
                              mesh_min_faces=mesh_min_faces, mesh_min_seen=mesh_min_seen)
     except ValidationError as exc:
@@ -133,15 +138,21 @@ def reconstruct(
 
 def _run_with_bar(run_pipeline: Callable[..., Any], video: Path, job_dir: Path, options: JobOptions,
                   device: str) -> None:
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+    # The job's own ETA (the running stage's estimate plus the expected time of the later stages), not
+    # rich's extrapolation of the overall fraction, which the stages' uneven weights would skew.
     columns = (TextColumn("[bold]{task.fields[stage]:<7}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
-               TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.description}"))
+               TimeElapsedColumn(), TextColumn("ETA {task.fields[eta]}"), TextColumn("{task.description}"))
     with Progress(*columns, transient=False) as bar:
-        task = bar.add_task("", total=1.0, stage="start")
+        task = bar.add_task("", total=1.0, stage="start", eta="-")
 
         def report(fraction: float, message: str = "", **info: Any) -> None:
-            bar.update(task, completed=fraction, description=message[:60], stage=info.get("stage", ""))
+            if info.get("event") == "plan":
+                return
+            eta = info.get("job_eta_s")
+            bar.update(task, completed=fraction, description=message[:60], stage=info.get("stage", ""),
+                       eta=f"{int(eta) // 60}:{int(eta) % 60:02d}" if eta is not None else "-")
 
         run_pipeline(video, job_dir, options, report, device=device)
 

@@ -2,7 +2,9 @@
 
 A separate process keeps training off the API's event loop and lets the worker use Celery's prefork
 pool (time limits, a fresh process per job). It gets the app's settings through ``NEUDF_*`` variables,
-so both sides agree on the data folder, database and broker.
+so both sides agree on the data folder, database and broker, and this process's id as ``parent_pid``: a
+worker whose `neudf serve` was killed outright (SIGKILL, the OOM killer) ends by itself and hands back its
+job, instead of living on beside the next `neudf serve`'s worker (``worker.tasks.WorkerMonitor``).
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
+
+from pydantic import SecretStr
 
 from service.settings import Settings
 
@@ -27,12 +31,15 @@ def settings_env(settings: Settings) -> dict[str, str]:
         key = f"NEUDF_{name.upper()}"
         if value is None:
             env.pop(key, None)
+        elif isinstance(value, SecretStr):
+            env[key] = value.get_secret_value()
         elif isinstance(value, list):
             env[key] = ",".join(map(str, value))
         else:
             env[key] = str(value)
     env["NEUDF_DATA_DIR"] = str(settings.root)
     env["NEUDF_EMBEDDED_WORKER"] = "false"
+    env["NEUDF_PARENT_PID"] = str(os.getpid())
     # The child must import this very code base, whichever way it was installed (or not).
     root = str(Path(__file__).resolve().parents[1])
     env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])

@@ -1,9 +1,11 @@
 """The service layer: what both the REST API and the web page do with jobs.
 
 Accepting an upload is all or nothing: the file is checked (not empty, a decodable video within the
-limits, valid options) while it still sits in a staging folder; only an accepted upload becomes a job
-folder, a job record and a queue message, and if the queue cannot take the message the record and folder
-go again. A rejected upload leaves nothing behind; an accepted one is kept in the job's input/ folder.
+limits, valid options, room for it: the caller's unfinished jobs and the free disk) while it still sits in a
+staging folder; only an accepted upload becomes a job folder, a job record and a queue message, and if the
+store or the queue cannot take it the folder goes again (first, so that it goes even when the record
+cannot). A rejected upload leaves nothing behind; an accepted one is kept in the job's input/ folder.
+Folders under jobs/ without a record (a process killed mid-create) are swept at start.
 """
 
 from __future__ import annotations
@@ -18,15 +20,17 @@ from typing import Any
 
 from kombu.utils.url import maybe_sanitize_url
 from pydantic import ValidationError
+from sqlalchemy.exc import SQLAlchemyError
 
 import neudf_core
-from service.models import BrokerHealth, Health, JobPublic, WorkerHealth
+from service.models import BrokerHealth, Health, HealthPublic, JobPublic, WorkerHealth
 from service.settings import Settings
 from worker.celery_app import broker_reachable, create_celery, enqueue_job
 from worker.errors import StageError
-from worker.pipeline import STAGE_NAMES, JobOptions, artifact_files
+from worker.pipeline import STAGE_NAMES, JobOptions, completed_stages
 from worker.stages.frames import VideoInfo, VideoLimits, probe_video
 from worker.store import JobRecord, JobStore
+from worker.tasks import finished_artifacts
 
 log = logging.getLogger("neudf.service")
 
@@ -35,12 +39,16 @@ _VIDEO_EXT = re.compile(r"\.[A-Za-z0-9]{1,5}")
 _OPTION_FIELDS = set(JobOptions.model_fields)
 
 
-class JobRejected(Exception):
-    """A request the service turns down: an HTTP status and a one-line reason."""
+STORE_BUSY = "the job store is busy or unreachable; try again shortly"
+UNFINISHED = ("queued", "running")
 
-    def __init__(self, status: int, detail: str) -> None:
+
+class JobRejected(Exception):
+    """A request the service turns down: an HTTP status, a one-line reason and, for a wait, its seconds."""
+
+    def __init__(self, status: int, detail: str, retry_after_s: float | None = None) -> None:
         super().__init__(detail)
-        self.status, self.detail = status, detail
+        self.status, self.detail, self.retry_after_s = status, detail, retry_after_s
 
 
 def probe_upload(path: Path, settings: Settings) -> VideoInfo:
@@ -62,7 +70,7 @@ class JobService:
         self.settings = settings
         settings.root.mkdir(parents=True, exist_ok=True)
         settings.uploads_dir.mkdir(parents=True, exist_ok=True)
-        self.store = JobStore(settings.resolved_database_url)
+        self.store = JobStore(settings.resolved_database_url, busy_timeout_s=settings.db_wait_s)
         self.celery = create_celery(settings, with_tasks=False)
 
     # -- who sees what --------------------------------------------------------------------------------
@@ -88,15 +96,28 @@ class JobService:
     def parse_options(self, fields: dict[str, str]) -> JobOptions:
         unknown = sorted(set(fields) - _OPTION_FIELDS)
         if unknown:
-            raise JobRejected(422, f"unknown field(s) {', '.join(unknown)}; accepted: file, "
-                                   f"{', '.join(sorted(_OPTION_FIELDS))}")
+            named = ", ".join(repr(name[:40]) for name in unknown[:5]) + (f" and {len(unknown) - 5} more"
+                                                                         if len(unknown) > 5 else "")
+            raise JobRejected(422, f"unknown field(s) {named}; accepted: file, {', '.join(sorted(_OPTION_FIELDS))}")
         values: dict[str, Any] = {k: v for k, v in fields.items() if str(v).strip() != ""}
-        values.setdefault("preset", self.settings.default_preset)
+        if self.settings.default_preset:
+            values.setdefault("preset", self.settings.default_preset)
         try:
             return JobOptions.model_validate(values)
         except ValidationError as exc:
             reasons = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'options'}: {e['msg']}" for e in exc.errors())
             raise JobRejected(422, f"invalid options: {reasons}") from None
+
+    def check_room(self, owner: str | None, incoming_bytes: int = 0) -> None:
+        """JobRejected unless the caller may add a job: 429 past its unfinished jobs, 507 short of disk."""
+        counts = self.store.counts(owner=owner, any_owner=not self.settings.auth_enabled)
+        unfinished = sum(counts.get(state, 0) for state in UNFINISHED)
+        if unfinished >= self.settings.max_unfinished_jobs:
+            raise JobRejected(429, f"{unfinished} jobs are queued or running (at most "
+                                   f"{self.settings.max_unfinished_jobs}); wait for one to finish or cancel one", 60)
+        free_mb = (shutil.disk_usage(self.settings.root).free - incoming_bytes) / 2**20
+        if free_mb < self.settings.min_free_disk_mb:
+            raise JobRejected(507, "the server is short of disk space for a new job; try again later")
 
     def create(self, upload: Path, input_name: str, fields: dict[str, str], owner: str | None) -> JobRecord:
         """Turn an upload (a file in a staging folder) into a queued job, or raise JobRejected."""
@@ -106,6 +127,7 @@ class JobService:
         if size > self.settings.max_upload_bytes:
             raise JobRejected(413, f"the upload is larger than the limit of {self.settings.max_upload_mb:g} MB")
         options = self.parse_options(fields)
+        self.check_room(owner)
         info = probe_upload(upload, self.settings)
         job_id = uuid.uuid4().hex
         job_dir = self.settings.job_dir(job_id)
@@ -117,15 +139,26 @@ class JobService:
             job = self.store.create(job_id=job_id, owner=owner, stages=list(STAGE_NAMES),
                                     options=options.model_dump(exclude_none=True), input_name=input_name[:255],
                                     input_bytes=size)
-            enqueue_job(self.celery, job_id)
-        except Exception as exc:
-            self.store.discard(job_id)
+        except SQLAlchemyError as exc:
             shutil.rmtree(job_dir, ignore_errors=True)
+            log.warning("job store refused job %s: %s", job_id, exc)
+            raise JobRejected(503, STORE_BUSY, 5) from exc
+        try:
+            enqueue_job(self.celery, job_id)
+        except Exception as exc:  # any broker error: the job must go again, whole
+            shutil.rmtree(job_dir, ignore_errors=True)
+            self._discard(job_id)
             log.exception("could not queue job %s", job_id)
-            raise JobRejected(503, f"the job queue is unreachable ({type(exc).__name__}); try again later") from exc
+            raise JobRejected(503, "the job queue is unreachable; try again later", 5) from exc
         log.info("job %s queued: %s, %d bytes, %dx%d, %d frames, %.1f s", job_id, input_name, size, info.width,
                  info.height, info.frames, info.seconds)
         return job
+
+    def _discard(self, job_id: str) -> None:
+        try:
+            self.store.discard(job_id)
+        except SQLAlchemyError:  # the record stays queued without its video: a worker fails it ("video missing")
+            log.warning("could not remove the record of unqueued job %s", job_id, exc_info=True)
 
     def create_from_file(self, source: Path, input_name: str, fields: dict[str, str], owner: str | None) -> JobRecord:
         """The page's way in: copy a file (Gradio's upload) into staging, then as ``create``."""
@@ -154,12 +187,12 @@ class JobService:
         shutil.rmtree(self.settings.job_dir(job_id), ignore_errors=True)
 
     def artifact(self, job_id: str, name: str, owner: str | None) -> Path:
-        """The file behind an artifact name; only the fixed names of ``artifact_files`` ever resolve."""
+        """The file behind an artifact name, once whole; only the fixed names of ``artifact_files`` ever resolve."""
         job = self.get(job_id, owner)
-        if not _ARTIFACT_NAME.fullmatch(name) or ".." in name:
-            raise JobRejected(400, f"invalid artifact name {name!r}")
+        if not _ARTIFACT_NAME.fullmatch(name[:64]) or ".." in name:
+            raise JobRejected(400, f"invalid artifact name {name[:64]!r}")
         job_dir = self.settings.job_dir(job.id)
-        files = artifact_files(job_dir)
+        files = finished_artifacts(job_dir)
         path = files.get(name)
         if path is None:
             available = ", ".join(sorted(files)) or "none yet"
@@ -170,51 +203,81 @@ class JobService:
         return resolved
 
     def frames(self, job_id: str, owner: str | None, limit: int = 24) -> list[Path]:
-        """Up to ``limit`` of the job's chosen frames, evenly spread."""
+        """Up to ``limit`` of the job's chosen frames, evenly spread, once the frames stage has finished."""
         self.get(job_id, owner)
-        files = sorted((self.settings.job_dir(job_id) / "data" / "image").glob("*.png"))
+        job_dir = self.settings.job_dir(job_id)
+        if "frames" not in completed_stages(job_dir):
+            return []
+        files = sorted((job_dir / "data" / "image").glob("*.png"))
         if len(files) <= limit:
             return files
         step = (len(files) - 1) / (limit - 1)
         return [files[round(i * step)] for i in range(limit)]
 
+    def page_file(self, job_id: str, path: Path, owner: str | None) -> None:
+        """JobRejected 404 unless ``path`` (resolved) is a whole artifact or a chosen frame of the caller's job."""
+        self.get(job_id, owner)
+        job_dir = self.settings.job_dir(job_id)
+        shown = {p.resolve() for p in finished_artifacts(job_dir).values()} | {p.resolve() for p in
+                                                                             self.frames(job_id, owner, limit=10**6)}
+        if path not in shown or not path.is_file():
+            raise JobRejected(404, "no such file")
+
     def public(self, job: JobRecord) -> JobPublic:
         return JobPublic.of(job)
 
     # -- health -----------------------------------------------------------------------------------------
-    def health(self) -> Health:
+    def health(self, owner: str | None, *, details: bool) -> HealthPublic:
+        """ok only with the database and the broker reachable and a worker alive. ``details``: what is where (for
+        a valid token, or anyone when tokens are off); job counts are the caller's own when tokens are on."""
         reasons = []
         database: dict[str, Any] = {"url": maybe_sanitize_url(self.settings.resolved_database_url), "reachable": True}
         counts: dict[str, int] = {}
         workers = []
+        seen_within_s = 3 * self.settings.heartbeat_s + 5
         try:
             self.store.ping()
-            counts = self.store.counts()
-            workers = self.store.workers(seen_within_s=3 * self.settings.heartbeat_s + 5)
-        except Exception as exc:
-            database.update(reachable=False, error=f"{type(exc).__name__}: {exc}"[:300])
+            counts = self.store.counts(owner=owner, any_owner=not self.settings.auth_enabled)
+            workers = self.store.workers(seen_within_s=seen_within_s)
+        except Exception as exc:  # any database error means "unreachable"; its text stays in the log
+            log.warning("health: database unreachable: %s", exc)
+            database.update(reachable=False, error=type(exc).__name__)
             reasons.append("database unreachable")
         ok, error = broker_reachable(self.celery)
         if not ok:
+            log.warning("health: broker unreachable: %s", error)
             reasons.append("broker unreachable")
         if not workers:
-            reasons.append("no worker has reported in the last "
-                           f"{3 * self.settings.heartbeat_s + 5:.0f} s")
+            reasons.append(f"no worker has reported in the last {seen_within_s:.0f} s")
+        status = "ok" if not reasons else "degraded"
+        if not details:
+            return HealthPublic(status=status)
         broker = BrokerHealth(url=maybe_sanitize_url(self.settings.resolved_broker_url),
-                              embedded=self.settings.embedded_broker, reachable=ok, error=error)
-        return Health(status="ok" if not reasons else "degraded", version=neudf_core.__version__, database=database,
-                      broker=broker, workers=[WorkerHealth(**w.model_dump()) for w in workers],
-                      workers_alive=len(workers), jobs=counts, reasons=reasons)
+                              embedded=self.settings.embedded_broker, reachable=ok,
+                              error=error.split(":", 1)[0] if error else None)
+        return Health(status=status, version=neudf_core.__version__, database=database, broker=broker,
+                      workers=[WorkerHealth(**w.model_dump()) for w in workers], workers_alive=len(workers),
+                      jobs=counts, reasons=reasons)
 
     def sweep_uploads(self, older_than_s: float = 3600) -> int:
         """Remove staging folders left by uploads cut off mid-way (a restarted API)."""
-        removed = 0
-        now = time.time()
-        for folder in self.settings.uploads_dir.glob("*"):
-            if now - folder.stat().st_mtime > older_than_s:
-                shutil.rmtree(folder, ignore_errors=True)
-                removed += 1
-        return removed
+        return _remove_old(self.settings.uploads_dir.glob("*"), older_than_s)
+
+    def sweep_orphans(self, older_than_s: float = 3600) -> int:
+        """Remove job folders that have no record (a create cut off between its folder and its record)."""
+        folders = [f for f in self.settings.jobs_dir.glob("*") if self.store.get(f.name) is None] \
+            if self.settings.jobs_dir.is_dir() else []
+        return _remove_old(folders, older_than_s)
+
+
+def _remove_old(paths: Any, older_than_s: float) -> int:
+    removed = 0
+    now = time.time()
+    for path in paths:
+        if now - path.stat().st_mtime > older_than_s:
+            shutil.rmtree(path, ignore_errors=True)
+            removed += 1
+    return removed
 
 
 def _looks_like_id(job_id: str) -> bool:

@@ -42,6 +42,8 @@ class JobPublic(BaseModel):
     message: str
     stages: list[StagePublic]
     error: ErrorPublic | None
+    eta_s: float | None = Field(None, description="Seconds until the whole job is done (the running stage's "
+                                "estimate plus the expected time of the stages after it); while running")
     metrics: dict[str, Any]
     artifacts: dict[str, str] = Field(description="Artifact name -> URL")
     options: dict[str, Any]
@@ -60,8 +62,11 @@ class JobPublic(BaseModel):
             if data["state"] == "skipped":
                 data["state"] = "done"
             stages.append(StagePublic(**data))
+        left = [st.eta_s for st in job.stages if st.state not in ("done", "skipped")]
+        eta = round(sum(e for e in left if e is not None), 1) if job.state == "running" and any(
+            e is not None for e in left) else None
         return cls(
-            id=job.id, state=job.state, stage=job.stage, progress=job.progress, message=job.message,
+            id=job.id, state=job.state, stage=job.stage, progress=job.progress, message=job.message, eta_s=eta,
             stages=stages, error=ErrorPublic(**job.error) if job.error else None, metrics=job.metrics,
             artifacts={name: f"{base}/api/jobs/{job.id}/artifacts/{name}" for name in job.artifacts},
             options=job.options, input={"name": job.input_name, "bytes": job.input_bytes}, attempts=job.attempts,
@@ -92,12 +97,23 @@ class WorkerHealth(BaseModel):
     last_seen: datetime
 
 
-class Health(BaseModel):
+class HealthPublic(BaseModel):
+    """What anyone may see: whether the service can take and run jobs (HTTP 200) or not (503)."""
+
     status: Literal["ok", "degraded"] = Field(description="ok: database and broker reachable and a worker alive")
+
+
+class Health(HealthPublic):
+    """The same with what is where: for a valid token, or anyone when tokens are off."""
+
     version: str
     database: dict[str, Any]
     broker: BrokerHealth
     workers: list[WorkerHealth]
     workers_alive: int
-    jobs: dict[str, int] = Field(description="Job counts by state")
+    jobs: dict[str, int] = Field(description="Job counts by state (the caller's own when tokens are on)")
     reasons: list[str] = Field(default_factory=list, description="Why the status is degraded")
+
+
+class Live(BaseModel):
+    status: Literal["ok"] = "ok"

@@ -8,13 +8,11 @@ environment.
 
 from __future__ import annotations
 
-import hashlib
-import hmac
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import Field, field_validator
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import NoDecode, SettingsConfigDict
 
 from worker.celery_app import QueueSettings
@@ -31,10 +29,20 @@ class Settings(QueueSettings):
         description="Comma-separated bearer tokens. Set: every /api/jobs call needs one, and sees only its own jobs.",
     )
     embedded_worker: bool = Field(False, description="Start a local Celery worker with the API (`neudf serve` sets it).")
-    default_preset: str = Field("quick", description="Training preset of a job that names none.")
+    default_preset: str | None = Field(None, description="Training preset of a job that names none (default: the "
+                                       "worker's device's, quick on a CPU, gpu on CUDA).")
     video_max_seconds: float = Field(1800.0, gt=0, description="Longest accepted video.")
     video_min_frames: int = Field(8, ge=1, description="Fewest decodable frames an accepted video must have.")
     video_max_pixels: int = Field(8192 * 8192, gt=0, description="Largest accepted frame (width x height).")
+    secret_key: SecretStr | None = Field(None, description="Key that turns tokens into the owner keys stored with "
+                                         "jobs; default a random key kept in DATA_DIR/secret.key.")
+    auth_fail_limit: int = Field(10, ge=1, description="Bad tokens one client address may send per window; more get 429.")
+    auth_fail_window_s: float = Field(60.0, gt=0, description="The window of auth_fail_limit.")
+    max_unfinished_jobs: int = Field(10, ge=1, description="Queued or running jobs one token may have (everyone "
+                                     "together without tokens); more get 429.")
+    min_free_disk_mb: float = Field(1024.0, ge=0, description="Free disk the data folder must keep after an upload; "
+                                    "less gets 507.")
+    db_wait_s: float = Field(5.0, gt=0, description="How long an API write waits for the job store before 503.")
 
     @field_validator("auth_tokens", mode="before")
     @classmethod
@@ -54,12 +62,6 @@ class Settings(QueueSettings):
     @property
     def auth_enabled(self) -> bool:
         return bool(self.auth_tokens)
-
-    def owner_of(self, token: str) -> str | None:
-        """The owner key stored with a job: a hash of a configured token (never the token); None if unknown."""
-        if not any(hmac.compare_digest(token.encode(), t.encode()) for t in self.auth_tokens):
-            return None
-        return hashlib.sha256(token.encode()).hexdigest()[:32]
 
 
 @lru_cache

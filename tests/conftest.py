@@ -84,27 +84,29 @@ class WorkerProcess:
 
 
 class ServeProcess:
-    """`neudf serve` (API + page + embedded worker) as a child process group."""
+    """`neudf serve` (API + page + embedded worker, unless ``worker=False``) as a child process group."""
 
-    def __init__(self, data_dir: Path, log: Path, **env: str) -> None:
-        self.port = free_port()
+    def __init__(self, data_dir: Path, log: Path, *, worker: bool = True, port: int | None = None, **env: str) -> None:
+        self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.data_dir = data_dir
+        self.worker = worker
+        command = [sys.executable, "-m", "service.cli", "serve", "--port", str(self.port), "--data-dir", str(data_dir)]
         with open(log, "ab") as fh:
-            self.process = subprocess.Popen(
-                [sys.executable, "-m", "service.cli", "serve", "--port", str(self.port), "--data-dir", str(data_dir)],
-                cwd=ROOT, env=neudf_env(data_dir, **env), stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+            self.process = subprocess.Popen(command + ([] if worker else ["--no-worker"]), cwd=ROOT,
+                                            env=neudf_env(data_dir, **env), stdout=fh, stderr=subprocess.STDOUT,
+                                            start_new_session=True)
         self.log = log
 
     def wait_ready(self, timeout_s: float = 120) -> None:
-        """Until the API answers and the embedded worker has reported in."""
+        """Until the API answers and, with a worker, health says ok (it has reported in)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
                 raise RuntimeError(f"neudf serve exited: {self.log.read_text()[-3000:]}")
             try:
-                health = httpx.get(f"{self.url}/api/health", timeout=5).json()
-                if health["workers_alive"] >= 1:
+                response = httpx.get(f"{self.url}/api/health", timeout=5)
+                if not self.worker or response.json()["status"] == "ok":
                     return
             except (httpx.HTTPError, ValueError, KeyError):
                 pass

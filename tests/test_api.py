@@ -123,7 +123,7 @@ def test_accepted_job_lifecycle_without_worker(make_client: Callable, tiny_video
         response = upload(client, tiny_video, name=f"clip{i}.mp4", iters="5")
         assert response.status_code == 201, response.text
         job = response.json()
-        assert job["state"] == "queued" and job["options"]["iters"] == 5 and job["options"]["preset"] == "quick"
+        assert job["state"] == "queued" and job["options"]["iters"] == 5 and job["options"].get("preset") is None
         assert [s["name"] for s in job["stages"]] == list(STAGE_NAMES)
         ids.append(job["id"])
     # The upload of an accepted job is kept, byte for byte.
@@ -174,22 +174,75 @@ def test_tokens_keep_jobs_apart(make_client: Callable, tiny_video: Path) -> None
     assert client.post(f"/api/jobs/{job_id}/cancel", headers=bob).status_code == 404
     assert client.get("/api/jobs", headers=bob).json()["total"] == 0
     assert client.get("/api/jobs", headers=alice).json()["total"] == 1
-    assert client.get("/api/health").status_code == 200  # health stays open for probes
+    # health stays open for probes, without what is where (no worker here: degraded)
+    assert client.get("/api/health").json() == {"status": "degraded"}
 
 
 def test_health_without_worker_is_degraded(make_client: Callable) -> None:
     client, _ = make_client()
-    health = client.get("/api/health").json()
+    response = client.get("/api/health")
+    assert response.status_code == 503
+    health = response.json()
     assert health["status"] == "degraded" and health["workers_alive"] == 0
     assert health["broker"]["reachable"] and health["database"]["reachable"]
     assert any("worker" in r for r in health["reasons"])
+    assert client.get("/api/live").json() == {"status": "ok"}
+
+
+def test_options_that_could_exhaust_the_machine_are_refused(make_client: Callable, tiny_video: Path) -> None:
+    client, settings = make_client()
+    for fields in ({"frames": "2000"}, {"max_size": "8192"}, {"mesh_resolution": "2048"}):
+        response = upload(client, tiny_video, **fields)
+        assert response.status_code == 422, fields
+        assert next(iter(fields)) in response.json()["detail"]
+    assert_nothing_left(settings)
+
+
+def test_unfinished_jobs_per_token_are_capped(make_client: Callable, tiny_video: Path) -> None:
+    client, _ = make_client(auth_tokens="alice-token,bob-token", max_unfinished_jobs=2)
+    alice = {"Authorization": "Bearer alice-token"}
+    ids = [upload(client, tiny_video, headers=alice).json()["id"] for _ in range(2)]
+    response = upload(client, tiny_video, headers=alice)
+    assert response.status_code == 429 and "at most 2" in response.json()["detail"]
+    assert int(response.headers["retry-after"]) > 0
+    assert upload(client, tiny_video, headers={"Authorization": "Bearer bob-token"}).status_code == 201
+    assert client.post(f"/api/jobs/{ids[0]}/cancel", headers=alice).status_code == 200
+    assert upload(client, tiny_video, headers=alice).status_code == 201
+
+
+def test_upload_needs_free_disk(make_client: Callable, tiny_video: Path) -> None:
+    client, settings = make_client(min_free_disk_mb=2**40)
+    response = upload(client, tiny_video)
+    assert response.status_code == 507 and "disk" in response.json()["detail"]
+    assert_nothing_left(settings)
+
+
+def test_owner_keys_depend_on_the_deployment_secret(make_client: Callable, tiny_video: Path) -> None:
+    """Owner keys are keyed by a secret of the deployment; jobs stored under the old unsalted key stay their token's."""
+    import hashlib
+
+    alice = {"Authorization": "Bearer alice-token"}
+    keys = []
+    for _ in range(2):
+        client, settings = make_client(auth_tokens="alice-token")
+        assert upload(client, tiny_video, headers=alice).status_code == 201
+        keys.append(JobStore(settings.resolved_database_url).list()[0][0].owner)
+    legacy = hashlib.sha256(b"alice-token").hexdigest()[:32]
+    assert keys[0] != keys[1] and legacy not in keys
+    client, settings = make_client(auth_tokens="alice-token")
+    store = JobStore(settings.resolved_database_url)
+    store.create(job_id="a" * 32, owner=legacy, stages=list(STAGE_NAMES), options={}, input_name="old.mp4",
+                 input_bytes=1)
+    jobs = client.get("/api/jobs", headers=alice).json()
+    assert [j["id"] for j in jobs["items"]] == ["a" * 32]
+    assert store.get("a" * 32).owner not in (legacy, None)
 
 
 def test_openapi_lists_the_routes(make_client: Callable) -> None:
     client, _ = make_client()
     paths = client.get("/openapi.json").json()["paths"]
     assert {"/api/jobs", "/api/jobs/{job_id}", "/api/jobs/{job_id}/artifacts/{name}", "/api/jobs/{job_id}/cancel",
-            "/api/health"} <= set(paths)
+            "/api/health", "/api/live"} <= set(paths)
     assert "multipart/form-data" in paths["/api/jobs"]["post"]["requestBody"]["content"]
     assert client.get("/docs").status_code == 200
 
@@ -198,8 +251,9 @@ def test_openapi_lists_the_routes(make_client: Callable) -> None:
 @pytest.mark.slow
 def test_embedded_video_to_glb(embedded_server: Any, tiny_video: Path) -> None:
     with httpx.Client(base_url=embedded_server.url, timeout=30) as client:
-        health = client.get("/api/health").json()
-        assert health["status"] == "ok" and health["broker"]["embedded"], health
+        response = client.get("/api/health")
+        health = response.json()
+        assert response.status_code == 200 and health["status"] == "ok" and health["broker"]["embedded"], health
         response = upload(client, tiny_video, **QUICK_JOB)
         assert response.status_code == 201, response.text
         job_id = response.json()["id"]

@@ -15,9 +15,10 @@ import av
 import numpy as np
 import pytest
 import trimesh
-from PIL import Image, ImageDraw
+from PIL import Image
 
 from neudf_core import synthetic
+from neudf_core.synthetic import blob_texture
 from neudf_core.progress import Cancelled
 from worker.capture import load_dataset_cameras, pose_errors, run_capture
 from worker.errors import StageError
@@ -31,21 +32,6 @@ ORBIT_RADIUS = 3.0
 
 
 # -- synthetic scenes and videos (bench/capture.py uses these too) -----------------------------------------
-def blob_texture(width: int, height: int, n_blobs: int, size_px: tuple[float, float], seed: int) -> Image.Image:
-    """Random coloured ellipses and rectangles over a soft noise: corners and blobs at many scales for SIFT."""
-    rng = np.random.default_rng(seed)
-    base = rng.integers(60, 200, size=(height // 16 + 1, width // 16 + 1, 3)).astype(np.uint8)
-    image = Image.fromarray(base).resize((width, height), Image.BICUBIC)
-    draw = ImageDraw.Draw(image)
-    for _ in range(n_blobs):
-        size = np.exp(rng.uniform(np.log(size_px[0]), np.log(size_px[1])))
-        x, y = rng.uniform(0, width), rng.uniform(0, height)
-        box = [x, y, x + size * rng.uniform(0.6, 1.6), y + size * rng.uniform(0.6, 1.6)]
-        colour = tuple(int(c) for c in rng.integers(0, 256, 3))
-        (draw.ellipse if rng.random() < 0.5 else draw.rectangle)(box, fill=colour)
-    return image
-
-
 def backdrop_sphere(radius: float = 5.0, rings: int = 64, seed: int = 1, texture_size: tuple[int, int] = (1024, 512),
                     n_blobs: int = 3000, blob_px: tuple[float, float] = (3, 16)) -> trimesh.Trimesh:
     """An inside-out textured sphere around the scene: a room's walls, with parallax for SIFT."""

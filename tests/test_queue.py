@@ -1,8 +1,13 @@
-"""The queue: the job store's claims on SQLite and PostgreSQL, a real Celery worker on the real Redis, and
-a worker SIGKILLed mid-job whose job finishes on a new worker without re-running its finished stages."""
+"""The queue: the job store's claims on SQLite and PostgreSQL, a real Celery worker on the real Redis, a
+worker SIGKILLed mid-job whose job finishes on a new worker without re-running its finished stages, a lost
+job sent again once the broker is back, a pool process killed under a live worker (failed, not retried),
+and what users read of an internal error."""
 
 from __future__ import annotations
 
+import json
+import os
+import signal
 import time
 import uuid
 from collections.abc import Iterator
@@ -10,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import psutil
 import pytest
 from fastapi.testclient import TestClient
 
@@ -22,11 +28,14 @@ from tests.conftest import (
     assert_monotonic_progress,
     assert_valid_glb,
     finished,
+    free_port,
     neudf_env,
     wait_job,
 )
+from worker.celery_app import QueueSettings, create_celery
 from worker.pipeline import STAGE_NAMES, completed_stages
 from worker.store import JobStore
+from worker.tasks import recover_stale_jobs
 
 
 # -- the store ------------------------------------------------------------------------------------------------
@@ -129,6 +138,64 @@ def _queue_stack(tmp_path: Path, broker_url: str | None) -> Iterator[dict[str, A
                 worker.stop()
             if gen is not None:
                 gen.close()
+
+
+@pytest.mark.redis
+def test_lost_job_is_sent_again_once_the_broker_is_back(redis_db: str, tmp_path: Path) -> None:
+    """A silent job stays silent (not queued without a message) while the broker refuses, and is sent once it is back."""
+    import redis
+
+    store_url = f"sqlite:///{tmp_path / 'jobs.db'}"
+    down = QueueSettings(data_dir=tmp_path / "data", database_url=store_url, stale_after_s=1,
+                         broker_url=f"redis://127.0.0.1:{free_port()}/0")
+    store = JobStore(store_url)
+    job_id = _new_job(store)
+    store.claim(job_id, "w1", stale_after_s=60)
+    time.sleep(1.1)  # w1 went silent
+    assert recover_stale_jobs(create_celery(down, with_tasks=False), store) == []
+    assert store.get(job_id).state == "running"  # still the sweep's to find
+    up = down.model_copy(update={"broker_url": redis_db})
+    assert recover_stale_jobs(create_celery(up, with_tasks=False), store) == [job_id]
+    assert store.get(job_id).state == "queued"
+    assert redis.Redis.from_url(redis_db).llen(up.queue) == 1  # its message waits for a worker
+
+
+@pytest.fixture
+def embedded_stack(tmp_path: Path) -> Iterator[dict[str, Any]]:
+    yield from _queue_stack(tmp_path, None)
+
+
+@pytest.mark.slow
+def test_killed_pool_process_fails_its_job(embedded_stack: dict[str, Any], tiny_video: Path) -> None:
+    """The job process dies (as under the out-of-memory killer) while its worker lives: failed, not run again."""
+    client = embedded_stack["client"]
+    worker = embedded_stack["start_worker"]()
+    _wait_worker(client)
+    job_id = _upload(client, tiny_video)
+    get = lambda: client.get(f"/api/jobs/{job_id}").json()  # noqa: E731
+    job, _ = wait_job(get, lambda j: j["state"] == "running" or finished(j), poll_s=0.1)
+    assert job["state"] == "running", job
+    for child in psutil.Process(worker.process.pid).children(recursive=True):
+        child.send_signal(signal.SIGKILL)
+    job, _ = wait_job(get, finished, timeout_s=60)
+    assert job["state"] == "failed" and "out-of-memory" in job["error"]["message"], job
+    time.sleep(embedded_stack["settings"].stale_after_s + 3)  # past any re-delivery or stale sweep
+    job = get()
+    assert job["state"] == "failed" and job["attempts"] == 1, job
+    assert worker.process.poll() is None  # the worker lives on
+
+
+@pytest.mark.slow
+def test_internal_errors_do_not_show_server_paths(embedded_stack: dict[str, Any], tiny_video: Path) -> None:
+    client, settings = embedded_stack["client"], embedded_stack["settings"]
+    job_id = _upload(client, tiny_video)
+    (settings.job_dir(job_id) / "data").write_text("a file where the frames stage wants its folder")
+    embedded_stack["start_worker"]()
+    job, _ = wait_job(lambda: client.get(f"/api/jobs/{job_id}").json(), finished, timeout_s=120)
+    assert job["state"] == "failed" and job["error"]["stage"] == "frames", job
+    assert "internal error" in job["error"]["message"]
+    shown = json.dumps(job)
+    assert str(settings.root) not in shown and os.sep + "tmp" not in shown, shown
 
 
 @pytest.fixture

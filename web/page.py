@@ -4,24 +4,31 @@ Upload (Gradio's file widget shows the upload's progress), the job list, the sel
 a progress bar and its stages, the chosen frames, the camera path, the loss curve, the GLB in Gradio's
 3-D viewer and a download button. A timer polls the job store once a second. Everything the page needs
 ships inside the gradio wheel: no CDN, no internet.
+
+The page shows a job's files straight from its folder (the jobs folder is one of Gradio's static paths),
+never copies: they are gone with the job, and ``web.guard.PageGuard`` hands each one out only to whoever
+sees the job. With tokens on, the guard lets through only callers with a valid token (``/login`` keeps one
+in a cookie) and Gradio tells the handlers whose they are (``auth_dependency``: the owner key as the user).
 """
 
 from __future__ import annotations
 
 import html
-import shutil
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import gradio as gr
 import pandas as pd
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
+from gradio.data_classes import FileData
 
+from service.auth import TokenAuth
 from service.jobs import JobRejected, JobService
+from web.guard import PageGuard, add_login_routes, client_of, page_token, page_upload
 from worker.store import JobRecord
 
 POLL_S = 1.0
+AUTO_PRESET = "auto (the worker's device: quick on a CPU, gpu on CUDA)"
 CSS = """
 #neudf-status progress { width: 100%; height: 1.2rem; accent-color: #2f6fde; }
 #neudf-status table { width: 100%; border-collapse: collapse; font-size: 0.9rem; margin-top: 0.5rem; }
@@ -33,25 +40,14 @@ FONTS = ["ui-sans-serif", "system-ui", "sans-serif"]
 MONO = ["ui-monospace", "monospace"]
 
 
-def _serve_copy(path: Path, job_id: str) -> str:
-    """Copy a job file where Gradio may serve it from (its upload folder), keyed by size and mtime.
-
-    The data folder may lie outside the places Gradio serves; listing it in ``allowed_paths`` would
-    expose every job's files to anyone, bypassing the tokens.
-    """
-    stat = path.stat()
-    folder = Path(gr.utils.get_upload_folder()) / "neudf" / job_id / f"{stat.st_size}-{int(stat.st_mtime_ns)}"
-    target = folder / path.name
-    if not target.exists():
-        folder.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(path, target)
-    return str(target)
+def _upload_path(payload: FileData | None) -> str | None:
+    return None if payload is None else payload.path
 
 
-def _artifact_copy(service: JobService, job_id: str, name: str, owner: str | None) -> str | None:
+def _artifact_path(service: JobService, job_id: str, name: str, owner: str | None) -> str | None:
     try:
-        return _serve_copy(service.artifact(job_id, name, owner), job_id)
-    except (JobRejected, OSError):
+        return str(service.artifact(job_id, name, owner))
+    except JobRejected:
         return None
 
 
@@ -103,39 +99,43 @@ def build_page(service: JobService) -> gr.Blocks:
 
     settings = service.settings
 
-    def owner_of(token: str) -> str | None:
+    def owner_of(request: gr.Request) -> str | None:
+        """The owner key Gradio got from ``auth_dependency`` (the guard let only valid tokens through)."""
         if not settings.auth_enabled:
             return None
-        owner = settings.owner_of((token or "").strip())
-        if owner is None:
-            raise JobRejected(401, "enter a valid access token")
-        return owner
+        if not request.username:
+            raise JobRejected(401, "sign in at /login")
+        return request.username
 
-    def submit(file: str | None, preset: str, frames: float | None, iters: float | None, resolution: float | None,
-               threshold: float | None, min_faces: float | None, min_seen: float | None,
-               token: str) -> tuple[str | None, str]:
+    def submit(file: str | None, preset: str, minutes: float | None, frames: float | None, iters: float | None,
+               resolution: float | None, threshold: float | None, min_faces: float | None, min_seen: float | None,
+               request: gr.Request) -> tuple[str | None, str, None]:
         if not file:
             raise gr.Error("Choose a video first.")
-        fields = {"preset": preset}
+        fields = {"preset": preset} if preset else {}
         for key, value in (("frames", frames), ("iters", iters), ("mesh_resolution", resolution),
                            ("mesh_min_faces", min_faces)):
             if value:
                 fields[key] = str(int(value))
+        if minutes:
+            fields["minutes"] = str(float(minutes))
         if threshold:
             fields["mesh_threshold"] = str(float(threshold))
         if min_seen is not None:  # 0 is a choice here: keep every face
             fields["mesh_min_seen"] = str(float(min_seen))
         try:
-            job = service.create_from_file(Path(file), Path(file).name, fields, owner_of(token))
+            upload = page_upload(file)
+            job = service.create_from_file(upload, upload.name, fields, owner_of(request))
         except JobRejected as exc:
             raise gr.Error(exc.detail) from None
-        return job.id, f"Job {job.id[:8]} queued."
+        upload.unlink(missing_ok=True)  # the job keeps its own copy; the page's goes at once
+        return job.id, f"Job {job.id[:8]} queued.", None
 
-    def cancel(job_id: str | None, token: str) -> str:
+    def cancel(job_id: str | None, request: gr.Request) -> str:
         if not job_id:
             return "No job selected."
         try:
-            service.cancel(job_id, owner_of(token))
+            service.cancel(job_id, owner_of(request))
         except JobRejected as exc:
             return exc.detail
         return f"Cancel requested for job {job_id[:8]}."
@@ -147,9 +147,9 @@ def build_page(service: JobService) -> gr.Blocks:
         except (IndexError, TypeError, ValueError):
             return None
 
-    def refresh(job_id: str | None, token: str, shown: dict[str, Any]) -> tuple:
+    def refresh(job_id: str | None, shown: dict[str, Any], request: gr.Request) -> tuple:
         try:
-            owner = owner_of(token)
+            owner = owner_of(request)
             jobs, _ = service.list(owner, limit=50)
             job = service.get(job_id, owner) if job_id else None
         except JobRejected:
@@ -169,16 +169,17 @@ def build_page(service: JobService) -> gr.Blocks:
         def keep_or(value_fn: Callable[[], Any]) -> Any:
             return gr.skip() if same_files else value_fn()
 
-        frames = keep_or(lambda: [_serve_copy(p, job.id) for p in service.frames(job.id, owner)] or None)
-        cameras = keep_or(lambda: _artifact_copy(service, job.id, "cameras.png", owner))
-        model_path = _artifact_copy(service, job.id, "mesh.glb", owner) if not same_files else None
+        frames = keep_or(lambda: [str(p) for p in service.frames(job.id, owner)] or None)
+        cameras = keep_or(lambda: _artifact_path(service, job.id, "cameras.png", owner))
+        model_path = _artifact_path(service, job.id, "mesh.glb", owner) if not same_files else None
         model = gr.skip() if same_files else model_path
         download = keep_or(lambda: gr.DownloadButton(value=model_path, visible=model_path is not None))
         loss_out = gr.skip() if same_job and shown.get("loss_rows") == signature["loss_rows"] else loss
         return table, ids, status, frames, cameras, loss_out, model, download, signature
 
     theme = gr.themes.Default(font=FONTS, font_mono=MONO)
-    with gr.Blocks(title="NeUDF: video to open mesh", analytics_enabled=False, delete_cache=(3600, 86400)) as page:
+    # Page uploads not turned into a job go after an hour.
+    with gr.Blocks(title="NeUDF: video to open mesh", analytics_enabled=False, delete_cache=(600, 3600)) as page:
         page.neudf_theme, page.neudf_css = theme, CSS  # mount_page passes them to gradio
         gr.Markdown("## NeUDF: phone video in, open-surface mesh out\nUpload a walk-around video of an object; "
                     "the job runs frames → poses → scene → train → mesh → export. The same jobs are at "
@@ -188,11 +189,17 @@ def build_page(service: JobService) -> gr.Blocks:
         shown = gr.State({})
         with gr.Row():
             with gr.Column(scale=1, min_width=300):
-                token = gr.Textbox(label="Access token", type="password", visible=settings.auth_enabled)
+                if settings.auth_enabled:
+                    gr.HTML("<form method='post' action='/logout'><button type='submit'>Sign out</button></form>")
                 video = gr.File(label="Video", file_types=["video"], type="filepath", elem_id="neudf-upload")
-                presets = available_presets()
-                preset = gr.Dropdown(presets, value=settings.default_preset if settings.default_preset in presets
-                                     else presets[0], label="Preset")
+                # gr.File's own preprocess leaves an empty temporary file in Gradio's folder on every call (and a
+                # subclass would make Gradio write a .pyi beside this module); the handler only needs the path,
+                # and checks it (a page upload, and a video).
+                video.preprocess = _upload_path
+                presets = [(AUTO_PRESET, "")] + [(name, name) for name in available_presets()]
+                preset = gr.Dropdown(presets, value=settings.default_preset or "", label="Preset")
+                minutes = gr.Number(label="Training minutes", value=None, minimum=0, elem_id="neudf-minutes",
+                                    info="0 or empty: the default budget")
                 with gr.Accordion("Options (empty: the preset's defaults)", open=False, elem_id="neudf-options"):
                     with gr.Row():
                         frames = gr.Number(label="Frames", value=None, precision=0, minimum=0)
@@ -220,19 +227,29 @@ def build_page(service: JobService) -> gr.Blocks:
                 gallery = gr.Gallery(label="Chosen frames", elem_id="neudf-frames", columns=8, height=220)
 
         outputs = [jobs, job_ids, status, gallery, cameras, loss, model, download, shown]
-        submit_btn.click(submit, [video, preset, frames, iters, resolution, threshold, min_faces, min_seen, token], [job_id, notice]).then(
-            refresh, [job_id, token, shown], outputs)
-        cancel_btn.click(cancel, [job_id, token], [notice])
-        jobs.select(pick, [job_ids], [job_id]).then(refresh, [job_id, token, shown], outputs)
+        submit_btn.click(submit, [video, preset, minutes, frames, iters, resolution, threshold, min_faces, min_seen],
+                         [job_id, notice, video]).then(refresh, [job_id, shown], outputs)
+        cancel_btn.click(cancel, [job_id], [notice])
+        jobs.select(pick, [job_ids], [job_id]).then(refresh, [job_id, shown], outputs)
         timer = gr.Timer(POLL_S)
-        timer.tick(refresh, [job_id, token, shown], outputs, show_progress="hidden")
-        page.load(refresh, [job_id, token, shown], outputs)
+        timer.tick(refresh, [job_id, shown], outputs, show_progress="hidden")
+        page.load(refresh, [job_id, shown], outputs)
     return page
 
 
-def mount_page(app: FastAPI, service: JobService) -> None:
+def mount_page(app: FastAPI, service: JobService, auth: TokenAuth) -> None:
     page = build_page(service)
+
+    def page_owner(request: Request) -> str | None:
+        try:
+            return auth.owner(page_token(request), client_of(request))
+        except JobRejected:
+            return None
+
+    add_login_routes(app, auth)  # before the page: its mount at / takes every path not routed yet
+    gr.set_static_paths([service.settings.jobs_dir])
     gr.mount_gradio_app(app, page, path="/", footer_links=[], ssr_mode=False,
                         max_file_size=int(service.settings.max_upload_bytes), theme=page.neudf_theme,
-                        css=page.neudf_css)
+                        css=page.neudf_css, auth_dependency=page_owner if auth.enabled else None)
+    app.add_middleware(PageGuard, service=service, auth=auth)
 

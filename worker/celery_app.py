@@ -1,14 +1,17 @@
 """The Celery application, built from settings when asked for (nothing configured at import time).
 
 Long GPU jobs follow Celery's advice for long tasks: a message is acknowledged only after its task ran
-(``acks_late``), a worker reserves one job at a time (prefetch 1), a lost worker process puts the message
-back (``reject_on_worker_lost``), soft and hard time limits bound a job, and the Redis visibility
-timeout sits above the hard limit so a running job is never handed to a second worker.
+(``acks_late``), a worker reserves one job at a time (prefetch 1), soft and hard time limits bound a job,
+and the Redis visibility timeout sits above the hard limit so a running job is never handed to a second
+worker.
 
-Re-delivery after a killed worker does not rely on the broker alone: the job table is the source of
-truth. A running job's process writes a heartbeat; every worker sweeps the table for running jobs whose
-heartbeat went stale and queues them again (``worker.tasks.recover_stale_jobs``). The pipeline skips
-stages whose outputs are complete, so the job resumes after its last finished stage.
+Re-delivery after a killed worker does not rely on the broker: the job table is the source of truth. A
+worker's main process writes the heartbeat of the jobs its pool runs; every worker sweeps the table for
+running jobs whose heartbeat went stale and queues them again (``worker.tasks.recover_stale_jobs``). The
+pipeline skips stages whose outputs are complete, so the job resumes after its last finished stage. A
+pool process that dies while its worker lives on is not re-delivered (no ``reject_on_worker_lost``): the
+usual killer of one process is the kernel's out-of-memory killer, and the same job would meet it again.
+The worker records such a job as failed (``worker.tasks``).
 
 Broker: ``NEUDF_BROKER_URL`` (``redis://host:6379/N`` to scale). Without it the embedded default is
 kombu's filesystem transport under ``DATA_DIR/broker`` (no server to run, survives restarts, every
@@ -51,6 +54,8 @@ class QueueSettings(BaseSettings):
     stale_after_s: float = Field(60.0, gt=0, description="A running job silent this long is taken as lost and queued again.")
     max_attempts: int = Field(3, ge=1, description="Deliveries of one job before it is failed as lost.")
     progress_interval_s: float = Field(0.5, ge=0, description="Least time between two progress writes of one job.")
+    parent_pid: int | None = Field(None, description="Set by `neudf serve` for its embedded worker: the worker ends "
+                                   "(and hands back its job) once this process is no longer its parent.")
 
     @property
     def root(self) -> Path:
@@ -133,7 +138,7 @@ def create_celery(settings: QueueSettings, *, with_tasks: bool = True) -> NeudfC
         task_serializer="json",
         accept_content=["json"],
         task_acks_late=True,
-        task_reject_on_worker_lost=True,
+        task_reject_on_worker_lost=False,
         worker_prefetch_multiplier=1,
         task_time_limit=hard,
         task_soft_time_limit=max(hard - 60, 1),

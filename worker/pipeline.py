@@ -42,17 +42,27 @@ __all__ = ["JobOptions", "STAGES", "STAGE_NAMES", "run_pipeline", "artifact_file
            "Cancelled"]
 
 
+# Sized so a 10 s phone video finishes end to end within about 20 minutes on a 2-core CPU.
+DEFAULT_TRAIN_MINUTES = 10.0
+
+
 class JobOptions(BaseModel):
     """What a user may choose for one job. Unset fields take each stage's own default."""
 
     model_config = ConfigDict(extra="forbid")
 
-    preset: str = Field("quick", description="Training preset: quick (CPU smoke run), fast, paper.")
-    frames: int | None = Field(None, ge=8, le=2000, description="Frames to pick from the video.")
+    preset: str | None = Field(None, description="Training preset (default: the device's, quick on a CPU, gpu on "
+                               "CUDA); also fast, paper.")
+    minutes: float | None = Field(None, gt=0, le=24 * 60, description="Training budget in minutes (default "
+                                  f"{DEFAULT_TRAIN_MINUTES:g}); training stops when it is spent or at iters.")
+    weight: Literal["neudf", "neus_sdf", "neus_abs"] = Field(
+        "neudf", description="Rendering weight: neudf (open surfaces), or a baseline: neus_sdf (closed surfaces), "
+        "neus_abs (NeuS on |f|).")
+    frames: int | None = Field(None, ge=8, le=300, description="Frames to pick from the video.")
     iters: int | None = Field(None, ge=1, le=2_000_000, description="Training iterations (default: the preset's).")
-    max_size: int | None = Field(None, ge=64, le=8192, description="Longest side of the frames given to SIFT.")
+    max_size: int | None = Field(None, ge=64, le=1600, description="Longest side of the frames given to SIFT.")
     mesh_method: Literal["meshudf", "spsr", "mc"] | None = Field(None, description="Open-surface extraction method.")
-    mesh_resolution: int | None = Field(None, ge=16, le=2048, description="Grid resolution of mesh extraction.")
+    mesh_resolution: int | None = Field(None, ge=16, le=512, description="Grid resolution of mesh extraction.")
     mesh_threshold: float | None = Field(None, gt=0, le=1, description="UDF level (unit-sphere units) under which "
                                          "a face counts as surface; default about a voxel.")
     mesh_min_faces: int | None = Field(None, ge=1, le=1_000_000, description="Connected pieces with fewer faces are "
@@ -63,11 +73,11 @@ class JobOptions(BaseModel):
 
     @field_validator("preset")
     @classmethod
-    def _known_preset(cls, value: str) -> str:
+    def _known_preset(cls, value: str | None) -> str | None:
         from neudf_core.config import available_presets
 
         presets = available_presets()
-        if value not in presets:
+        if value is not None and value not in presets:
             raise ValueError(f"unknown preset {value!r}; available: {', '.join(presets)}")
         return value
 
@@ -78,6 +88,25 @@ class JobContext:
     video: Path
     options: JobOptions
     device: str
+
+    @property
+    def preset(self) -> str:
+        from neudf_core.config import default_preset
+
+        return self.options.preset or default_preset(self.device)
+
+    @property
+    def train_minutes(self) -> float | None:
+        """The training budget: the user's, else the default one unless iterations were asked for."""
+        if self.options.minutes is None and self.options.iters is None:
+            return DEFAULT_TRAIN_MINUTES
+        return self.options.minutes
+
+    @property
+    def frames(self) -> int:
+        from worker.stages.frames import DEFAULT_FRAMES
+
+        return self.options.frames or DEFAULT_FRAMES
 
     @property
     def data_dir(self) -> Path:
@@ -134,9 +163,11 @@ def _scene(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
 def _train(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
     from neudf_core.trainer import train
 
-    result = train(ctx.data_dir, ctx.run_dir, preset=ctx.options.preset, iters=ctx.options.iters,
-                   device=ctx.device, progress=progress)
-    keep = ("iters", "psnr", "loss", "iters_per_s", "images", "preset")
+    minutes = ctx.train_minutes
+    overrides = {"renderer": {"weight": ctx.options.weight}} if ctx.options.weight != "neudf" else None
+    result = train(ctx.data_dir, ctx.run_dir, preset=ctx.preset, iters=ctx.options.iters, minutes=minutes,
+                   device=ctx.device, progress=progress, overrides=overrides)
+    keep = ("iters", "psnr", "loss", "iters_per_s", "images", "preset", "stopped_by", "minutes")
     return {f"train_{k}" if k in ("loss", "psnr") else k: result[k] for k in keep if result.get(k) is not None}
 
 
@@ -187,23 +218,31 @@ class Stage:
     # unless only ``resumable`` ones changed (more iterations continue a run).
     keys: tuple[str, ...] = ()
     resumable: tuple[str, ...] = ()
+    # Seconds this stage is expected to take on a 2-core CPU (bench/e2e.py's minutes per stage): the job's
+    # ETA before the stage has measured its own speed.
+    expect_s: Callable[[JobContext], float] = field(default=lambda ctx: 10.0)
 
     def options_used(self, ctx: JobContext) -> dict[str, Any]:
-        return {k: getattr(ctx.options, k) for k in self.keys}
+        # the preset a job trains with is the device's when the user named none
+        return {k: ctx.preset if k == "preset" else getattr(ctx.options, k) for k in self.keys}
 
 
 STAGES: tuple[Stage, ...] = (
     Stage("frames", 0.04, _frames, lambda c: [c.data_dir / "image", c.data_dir / "frames.json"],
-          keys=("frames", "max_size")),
-    Stage("poses", 0.16, _poses, lambda c: [c.data_dir / "colmap" / "poses.json"]),
+          keys=("frames", "max_size"), expect_s=lambda c: 0.15 * c.frames),
+    Stage("poses", 0.16, _poses, lambda c: [c.data_dir / "colmap" / "poses.json"],
+          expect_s=lambda c: 1.2 * c.frames),
     Stage("scene", 0.02, _scene, lambda c: [c.data_dir / "cameras_sphere.npz"]),
     # Not cleared when train itself runs again: the trainer resumes from its checkpoint (or goes on to more
     # iterations of the same configuration).
     Stage("train", 0.65, _train, lambda c: [c.run_dir / "config.json", c.run_dir / "metrics.jsonl"],
-          owns=lambda c: [c.run_dir], keys=("preset", "iters"), resumable=("iters",)),
+          owns=lambda c: [c.run_dir], keys=("preset", "weight", "iters", "minutes"), resumable=("iters", "minutes"),
+          expect_s=lambda c: 60.0 * c.train_minutes if c.train_minutes else 0.25 * (c.options.iters or 4000)),
     Stage("mesh", 0.10, _mesh, lambda c: [c.mesh_file], owns=lambda c: [c.mesh_file.parent],
-          keys=("mesh_method", "mesh_resolution", "mesh_threshold", "mesh_min_faces", "mesh_min_seen")),
+          keys=("mesh_method", "mesh_resolution", "mesh_threshold", "mesh_min_faces", "mesh_min_seen"),
+          expect_s=lambda c: 60.0),
     Stage("export", 0.03, _export, lambda c: [c.export_dir / "mesh.glb", c.export_dir / "metrics.json"],
+          expect_s=lambda c: 20.0,
           owns=lambda c: [c.export_dir / n for n in ("mesh.glb", "mesh.ply", "preview.png", "loss.png", "metrics.json")]),
 )
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)
@@ -270,6 +309,9 @@ def run_pipeline(video: str | Path, job_dir: str | Path, options: JobOptions | N
     start = 0.0
     metrics: dict[str, Any] = {}
     must_run = False  # once a stage runs, every later stage runs too
+    to_run = _stages_to_run(ctx)
+    for stage in to_run:  # each stage's expected time, so the job's ETA holds from its first second
+        progress(0.0, "", stage=stage.name, event="plan", eta_s=stage.expect_s(ctx))
     for stage in STAGES:
         end = start + stage.weight / total_weight
         if not must_run and _is_complete(stage, ctx):
@@ -289,21 +331,44 @@ def run_pipeline(video: str | Path, job_dir: str | Path, options: JobOptions | N
             for path in stage.owns(ctx):
                 _remove(path)
         _remove(_marker(ctx.job_dir, stage.name))
-        metrics.update(_run_stage(stage, ctx, progress, start, end))
+        later_s = sum(s.expect_s(ctx) for s in to_run[to_run.index(stage) + 1:])
+        metrics.update(_run_stage(stage, ctx, progress, start, end, later_s))
         start = end
     return metrics
 
 
-def _run_stage(stage: Stage, ctx: JobContext, progress: ProgressFn, start: float, end: float) -> dict[str, Any]:
-    progress(start, f"{stage.name}: started", stage=stage.name, stage_progress=0.0, event="start")
+def _stages_to_run(ctx: JobContext) -> list[Stage]:
+    """The stages a run will work through: from the first one not finished with these options to the end."""
+    for i, stage in enumerate(STAGES):
+        if not _is_complete(stage, ctx):
+            return list(STAGES[i:])
+    return []
+
+
+def _stage_eta(stage: Stage, ctx: JobContext, fraction: float, elapsed: float, info: dict[str, Any]) -> float:
+    """Seconds left in a running stage: its own figure if it gives one, else its speed so far, else the prior."""
+    if "eta_s" in info:
+        return float(info["eta_s"])
+    prior = max(stage.expect_s(ctx) - elapsed, 0.0)
+    if fraction < 0.1 or elapsed < 5.0:
+        return prior
+    return elapsed * (1.0 - fraction) / fraction
+
+
+def _run_stage(stage: Stage, ctx: JobContext, progress: ProgressFn, start: float, end: float,
+               later_s: float = 0.0) -> dict[str, Any]:
+    progress(start, f"{stage.name}: started", stage=stage.name, stage_progress=0.0, event="start",
+             eta_s=stage.expect_s(ctx), job_eta_s=stage.expect_s(ctx) + later_s)
     overall = sub_progress(progress, start, end)
+    t0 = time.perf_counter()
 
     def report(fraction: float, message: str = "", **info: Any) -> None:
         fraction = min(max(fraction, 0.0), 1.0)
+        eta = _stage_eta(stage, ctx, fraction, time.perf_counter() - t0, info)
+        info = {**info, "eta_s": eta, "job_eta_s": eta + later_s}
         overall(fraction, f"{stage.name}: {message}" if message else stage.name, stage=stage.name,
                 stage_progress=fraction, event="progress", **info)
 
-    t0 = time.perf_counter()
     try:
         figures = stage.run(ctx, report) or {}
     except (Cancelled, StageError):

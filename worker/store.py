@@ -5,16 +5,17 @@ claim a job, write its progress as it happens and its end. SQLite under the data
 SQLAlchemy URL (PostgreSQL, ...) to share it between machines.
 
 Every state change is one conditional UPDATE (``... WHERE state = 'queued'``), so two workers, or a
-worker and a cancelling user, never both win. On SQLite each transaction starts with BEGIN IMMEDIATE:
-a deferred transaction that reads and then writes can fail at once on a busy database instead of
-waiting, and we would rather wait.
+worker and a cancelling user, never both win. On SQLite (in WAL mode) a writing transaction starts with
+BEGIN IMMEDIATE: a deferred transaction that reads and then writes can fail at once on a busy database
+instead of waiting, and we would rather wait. A reading transaction stays deferred: it reads a snapshot
+and never waits behind a writer, so a page polling its job is never held up by a worker's progress write.
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
@@ -126,33 +127,41 @@ class WorkerRecord(BaseModel):
     last_seen: datetime
 
 
-def _sqlite_immediate(engine: Engine) -> None:
+_WRITE = "neudf_write"  # execution option of the engine that opens writing transactions
+
+
+def _sqlite_transactions(engine: Engine, busy_timeout_s: float) -> None:
     @event.listens_for(engine, "connect")
     def _connect(dbapi_connection, _record) -> None:  # type: ignore[no-untyped-def]
         dbapi_connection.isolation_level = None  # let us emit BEGIN ourselves
         cursor = dbapi_connection.cursor()
         cursor.execute("PRAGMA journal_mode=WAL")  # readers never block the writer
-        cursor.execute("PRAGMA busy_timeout=30000")
+        cursor.execute(f"PRAGMA busy_timeout={int(busy_timeout_s * 1000)}")
         cursor.execute("PRAGMA synchronous=NORMAL")
         cursor.close()
 
     @event.listens_for(engine, "begin")
     def _begin(conn) -> None:  # type: ignore[no-untyped-def]
-        conn.exec_driver_sql("BEGIN IMMEDIATE")
+        conn.exec_driver_sql("BEGIN IMMEDIATE" if conn.get_execution_options().get(_WRITE) else "BEGIN")
 
 
 class JobStore:
-    """Job records in a SQL database. Safe to use from several processes; make one per process."""
+    """Job records in a SQL database. Safe to use from several processes; make one per process.
 
-    def __init__(self, url: str) -> None:
+    ``busy_timeout_s``: how long a write waits for another writer's lock before it fails (SQLite).
+    """
+
+    def __init__(self, url: str, *, busy_timeout_s: float = 30.0) -> None:
         self.url = url
+        self.busy_timeout_s = busy_timeout_s
         self._pid = os.getpid()
         self._engine = self._make_engine()
 
     def _make_engine(self) -> Engine:
         if self.url.startswith("sqlite"):
-            engine = create_engine(self.url, connect_args={"timeout": 30, "check_same_thread": False})
-            _sqlite_immediate(engine)
+            engine = create_engine(self.url, connect_args={"timeout": self.busy_timeout_s,
+                                                           "check_same_thread": False})
+            _sqlite_transactions(engine, self.busy_timeout_s)
         else:
             engine = create_engine(self.url, pool_pre_ping=True)
         try:
@@ -170,12 +179,17 @@ class JobStore:
         return self._engine
 
     @contextmanager
-    def session(self) -> Iterator[Session]:
-        with sessionmaker(self.engine, expire_on_commit=False).begin() as session:
+    def session(self, *, write: bool = True) -> Iterator[Session]:
+        """One transaction; ``write=False`` for one that only reads (it never waits for a writer)."""
+        engine = self.engine.execution_options(**{_WRITE: True}) if write else self.engine
+        with sessionmaker(engine, expire_on_commit=False).begin() as session:
             yield session
 
+    def reading(self) -> AbstractContextManager[Session]:
+        return self.session(write=False)
+
     def ping(self) -> None:
-        with self.session() as s:
+        with self.reading() as s:
             s.execute(select(1))
 
     # -- the API's side -------------------------------------------------------------------------------
@@ -193,7 +207,7 @@ class JobStore:
             return JobRecord.of(row)
 
     def get(self, job_id: str) -> JobRecord | None:
-        with self.session() as s:
+        with self.reading() as s:
             row = s.get(JobRow, job_id)
             return JobRecord.of(row) if row else None
 
@@ -206,7 +220,7 @@ class JobStore:
             query = query.where(JobRow.owner == owner)
             count = count.where(JobRow.owner == owner)
         query = query.order_by(JobRow.created_at.desc(), JobRow.id.desc()).limit(limit).offset(offset)
-        with self.session() as s:
+        with self.reading() as s:
             rows = s.scalars(query).all()
             return [JobRecord.of(r) for r in rows], int(s.scalar(count) or 0)
 
@@ -282,6 +296,14 @@ class JobStore:
                 row.artifacts = sorted(set(artifacts))
             return row.cancel_requested
 
+    def update_stage(self, job_id: str, worker: str, stage_update: dict[str, Any]) -> None:
+        """Write one stage's record (``stage_update["name"]``) of a job this worker runs, nothing else."""
+        with self.session() as s:
+            row = s.get(JobRow, job_id, with_for_update=True)
+            if row is None or row.worker != worker or row.state != "running":
+                return
+            row.stages = [({**st, **stage_update} if st["name"] == stage_update["name"] else st) for st in row.stages]
+
     def finish(self, job_id: str, worker: str | None, state: str, *, message: str = "",
                error: dict[str, Any] | None = None, metrics: dict[str, Any] | None = None,
                artifacts: list[str] | None = None, stage_state: str | None = None) -> bool:
@@ -307,7 +329,7 @@ class JobStore:
 
     def stale_running(self, stale_after_s: float) -> list[JobRecord]:
         cutoff = utcnow() - timedelta(seconds=stale_after_s)
-        with self.session() as s:
+        with self.reading() as s:
             rows = s.scalars(select(JobRow).where(JobRow.state == "running", JobRow.heartbeat_at < cutoff)).all()
             return [JobRecord.of(r) for r in rows]
 
@@ -322,13 +344,21 @@ class JobStore:
             return bool(done.rowcount)
 
     def queued_ids(self) -> list[str]:
-        with self.session() as s:
+        with self.reading() as s:
             return list(s.scalars(select(JobRow.id).where(JobRow.state == "queued").order_by(JobRow.created_at)))
 
-    def counts(self) -> dict[str, int]:
+    def counts(self, *, owner: str | None = None, any_owner: bool = True) -> dict[str, int]:
+        """Jobs by state; with ``any_owner=False`` only those of ``owner``."""
+        query = select(JobRow.state, func.count()).group_by(JobRow.state)
+        if not any_owner:
+            query = query.where(JobRow.owner == owner)
+        with self.reading() as s:
+            return {state: int(n) for state, n in s.execute(query).all()}
+
+    def rename_owner(self, old: str, new: str) -> int:
+        """Give the jobs of owner key ``old`` to ``new`` (a changed way of deriving keys); how many moved."""
         with self.session() as s:
-            rows = s.execute(select(JobRow.state, func.count()).group_by(JobRow.state)).all()
-            return {state: int(n) for state, n in rows}
+            return s.execute(update(JobRow).where(JobRow.owner == old).values(owner=new)).rowcount
 
     # -- workers --------------------------------------------------------------------------------------
     def worker_beat(self, name: str, hostname: str, pid: int, device: str) -> None:
@@ -348,6 +378,6 @@ class JobStore:
 
     def workers(self, seen_within_s: float) -> list[WorkerRecord]:
         cutoff = utcnow() - timedelta(seconds=seen_within_s)
-        with self.session() as s:
+        with self.reading() as s:
             rows = s.scalars(select(WorkerRow).where(WorkerRow.last_seen >= cutoff).order_by(WorkerRow.name)).all()
             return [WorkerRecord.model_validate(r, from_attributes=True) for r in rows]

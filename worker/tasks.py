@@ -9,25 +9,34 @@ Liveness does not depend on the task's own Python thread (a long C++ call may ho
 worker's main process, which is not the pool process running the job, writes the heartbeat of the jobs
 its pool runs and its own, and sweeps the store for running jobs whose heartbeat went stale, queueing
 them again. A worker killed mid-job therefore stops heartbeating, any live worker re-queues the job
-after ``stale_after_s``, and the pipeline resumes after the last finished stage.
+after ``stale_after_s``, and the pipeline resumes after the last finished stage. A pool process killed
+while its worker lives on (the out-of-memory killer, the hard time limit) fails its job instead: running
+it again would meet the same end. An embedded worker (``parent_pid`` set) ends with its `neudf serve`.
+
+What users read of a failure is the stage's own message with server paths reduced to file names; an
+unexpected error's text goes to the worker's log only.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import re
+import signal
 import socket
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
+import psutil
+from billiard.exceptions import WorkerLostError
 from celery import signals
-from celery.exceptions import SoftTimeLimitExceeded
+from celery.exceptions import SoftTimeLimitExceeded, TimeLimitExceeded
 
 from neudf_core.progress import Cancelled
 from worker.celery_app import TASK_RUN_JOB, NeudfCelery, QueueSettings, enqueue_job
-from worker.pipeline import JobOptions, StageError, artifact_files, run_pipeline
+from worker.pipeline import JobOptions, StageError, artifact_files, completed_stages, run_pipeline
 from worker.store import JobRecord, JobStore, StageRecord, utcnow
 
 log = logging.getLogger("neudf.worker")
@@ -41,6 +50,37 @@ def get_store(settings: QueueSettings) -> JobStore:
     if key not in _stores:
         _stores[key] = JobStore(settings.resolved_database_url)
     return _stores[key]
+
+
+# Not every stage writes its files atomically, so an artifact is handed out once the stage that writes it has
+# finished (its marker is written after its outputs are whole). The capture stages write these whole (atomically),
+# metrics.jsonl grows a line at a time (served as its whole lines); anything else is the export stage's.
+WHOLE_WHEN_WRITTEN = frozenset({"capture.json", "frames.json", "cameras.png"})
+LIVE_ARTIFACTS = frozenset({"metrics.jsonl"})
+WRITTEN_BY = {"frames.png": "frames", "validation.png": "train"}
+
+
+def finished_artifacts(job_dir: Path) -> dict[str, Path]:
+    """The job's artifacts that may be handed out now: whole files only."""
+    done = set(completed_stages(job_dir))
+    return {name: path for name, path in artifact_files(job_dir).items()
+            if name in WHOLE_WHEN_WRITTEN or name in LIVE_ARTIFACTS or WRITTEN_BY.get(name, "export") in done}
+
+
+_ABS_PATH = re.compile(r"(?<![\w.~-])(?:/[^\s/'\"(),:;]+)+/?")
+
+
+def public_message(exc: StageError) -> str:
+    """A stage failure as users read it: the stage's own words without server paths; never an internal error's text."""
+    cause = exc.__cause__
+    if cause is not None and not isinstance(cause, StageError) and exc.message.startswith(f"{type(cause).__name__}:"):
+        # the pipeline's wrapping of an unexpected error: its text (paths, values) is for the log
+        return internal_error_message(cause)
+    return _ABS_PATH.sub(lambda m: Path(m.group(0)).name or "/", exc.message)
+
+
+def internal_error_message(exc: BaseException) -> str:
+    return f"an internal error ({type(exc).__name__}) stopped the job; the worker's log has the details"
 
 
 def find_input(job_dir: Path) -> Path | None:
@@ -66,6 +106,11 @@ class JobReporter:
         record = self.stages.get(stage) if stage else None
         metrics: dict[str, Any] = {}
         artifacts = None
+        if record is not None and event == "plan":  # a stage still to run, with its expected seconds
+            if record.state != "done":
+                record.eta_s = round(float(info.get("eta_s", 0.0)), 1)
+            self.store.update_stage(self.job_id, self.worker, record.model_dump(mode="json"))
+            return
         if record is not None:
             self.stage = stage
             record.progress = float(info.get("stage_progress", record.progress))
@@ -85,7 +130,7 @@ class JobReporter:
                 record.eta_s = round(float(info["eta_s"]), 1)
             if event in ("done", "skipped"):
                 record.eta_s = None
-                artifacts = list(artifact_files(self.job_dir))
+                artifacts = list(finished_artifacts(self.job_dir))
         for key in ("iter", "loss", "psnr"):
             if key in info and stage == "train":
                 metrics[f"train_{key}"] = info[key]
@@ -131,15 +176,15 @@ def run_job(settings: QueueSettings, job_id: str, worker: str) -> str:
                                device=settings.resolved_device())
     except Cancelled:
         store.finish(job_id, worker, "cancelled", message=f"cancelled during {reporter.stage or 'start'}",
-                     stage_state="cancelled", artifacts=list(artifact_files(job_dir)))
+                     stage_state="cancelled", artifacts=list(finished_artifacts(job_dir)))
         return "cancelled"
     except StageError as exc:
         cause = exc.__cause__
         message = (f"the job ran past its time limit of {settings.task_time_limit_s} s"
-                   if isinstance(cause, SoftTimeLimitExceeded) else str(exc.message))
-        log.warning("job %s failed in %s: %s", job_id, exc.stage, message)
+                   if isinstance(cause, SoftTimeLimitExceeded) else public_message(exc))
+        log.warning("job %s failed in %s: %s", job_id, exc.stage, exc.message, exc_info=cause is not None)
         store.finish(job_id, worker, "failed", message=f"failed in {exc.stage}", error=_error(exc.stage, message),
-                     stage_state="failed", artifacts=list(artifact_files(job_dir)))
+                     stage_state="failed", artifacts=list(finished_artifacts(job_dir)))
         return "failed"
     except SoftTimeLimitExceeded:
         store.finish(job_id, worker, "failed", error=_error(
@@ -147,11 +192,11 @@ def run_job(settings: QueueSettings, job_id: str, worker: str) -> str:
         return "failed"
     except Exception as exc:  # a bug outside any stage: still recorded, never a silent loss
         log.exception("job %s crashed", job_id)
-        store.finish(job_id, worker, "failed", error=_error(reporter.stage, f"{type(exc).__name__}: {exc}"),
+        store.finish(job_id, worker, "failed", error=_error(reporter.stage, internal_error_message(exc)),
                      stage_state="failed")
         return "failed"
     store.finish(job_id, worker, "succeeded", message="done", metrics=metrics,
-                 artifacts=list(artifact_files(job_dir)))
+                 artifacts=list(finished_artifacts(job_dir)))
     log.info("job %s succeeded", job_id)
     return "succeeded"
 
@@ -166,11 +211,35 @@ def recover_stale_jobs(app: NeudfCelery, store: JobStore) -> list[str]:
         elif job.attempts >= settings.max_attempts:
             store.finish(job.id, None, "failed", error=_error(
                 job.stage, f"the worker running this job was lost {job.attempts} times; gave up"), stage_state="failed")
-        elif store.requeue_stale(job.id, settings.stale_after_s):
+        elif _send_again(app, job.id) and store.requeue_stale(job.id, settings.stale_after_s):
             log.warning("job %s: worker %s silent for %.0f s; queued again", job.id, job.worker, settings.stale_after_s)
-            enqueue_job(app, job.id)
             requeued.append(job.id)
     return requeued
+
+
+def _send_again(app: NeudfCelery, job_id: str) -> bool:
+    """Send a silent job's message before marking it queued: a claim takes a silent running job as it takes a
+    queued one, and when the broker refuses, the job stays silent for the next sweep to try again (marked
+    queued first, it would wait for a message nobody sends)."""
+    try:
+        enqueue_job(app, job_id)
+    except Exception:  # any broker error: the next sweep tries again
+        log.warning("job %s: could not send it to the queue again; retrying at the next sweep", job_id, exc_info=True)
+        return False
+    return True
+
+
+def fail_lost_process(store: JobStore, job_id: str, exc: BaseException, settings: QueueSettings) -> None:
+    """Record the end of a job whose pool process died under a live worker (no re-delivery: see the module doc)."""
+    if isinstance(exc, TimeLimitExceeded):
+        message = f"the job ran past its time limit of {settings.task_time_limit_s} s"
+    else:
+        message = ("the job's process was killed, most often by the out-of-memory killer; try fewer frames, a "
+                   "smaller max_size or a lower mesh_resolution")
+    job = store.get(job_id)
+    log.warning("job %s: pool process lost (%s); failing it", job_id, exc)
+    store.finish(job_id, None, "failed", message="failed", error=_error(job.stage if job else None, message),
+                 stage_state="failed")
 
 
 def _active_job_ids() -> list[str]:
@@ -220,7 +289,23 @@ class WorkerMonitor:
             except OSError:
                 continue
 
+    def parent_gone(self) -> bool:
+        return self.settings.parent_pid is not None and os.getppid() != self.settings.parent_pid
+
+    def end_with_parent(self) -> None:
+        """End this worker and its pool at once, as a lost worker: a running job's heartbeat stops and a live
+        worker queues it again after ``stale_after_s`` (the next `neudf serve` starts one)."""
+        log.warning("neudf serve (pid %s) is gone; this worker ends and hands back its job", self.settings.parent_pid)
+        self.stop()
+        if os.getpgrp() == os.getpid():  # `neudf serve` starts its worker in a session of its own: one signal ends all
+            os.killpg(os.getpid(), signal.SIGKILL)
+        for child in psutil.Process().children(recursive=True):
+            child.kill()
+        os.kill(os.getpid(), signal.SIGKILL)
+
     def tick(self) -> None:
+        if self.parent_gone():
+            self.end_with_parent()
         store = get_store(self.settings)
         self._ticks += 1
         if self.settings.embedded_broker and self._ticks % 600 == 1:
@@ -259,7 +344,7 @@ def preload_modules() -> None:
 def register_tasks(app: NeudfCelery) -> None:
     """Add the job task to ``app`` and hook the monitor onto its worker's start and stop."""
 
-    @app.task(name=TASK_RUN_JOB, bind=True, acks_late=True, reject_on_worker_lost=True, ignore_result=True)
+    @app.task(name=TASK_RUN_JOB, bind=True, acks_late=True, reject_on_worker_lost=False, ignore_result=True)
     def run_job_task(self, job_id: str) -> str:  # noqa: ANN001 - Celery's bound task
         worker = f"{self.request.hostname}:{os.getpid()}"
         return run_job(self.app.neudf_settings, job_id, worker)
@@ -281,9 +366,18 @@ def register_tasks(app: NeudfCelery) -> None:
         if monitor is not None:
             monitor.stop()
 
+    def on_failure(sender: Any = None, exception: BaseException | None = None, args: Any = None, **_: Any) -> None:
+        # Sent in the worker's main process when the pool process running a job died (the task itself records
+        # every failure it lives to see).
+        if getattr(sender, "app", None) is not app or getattr(sender, "name", None) != TASK_RUN_JOB or not args:
+            return
+        if isinstance(exception, WorkerLostError | TimeLimitExceeded):
+            fail_lost_process(get_store(app.neudf_settings), str(args[0]), exception, app.neudf_settings)
+
     # weak=False: the handlers are closures that would otherwise be collected at once.
     signals.worker_init.connect(on_init, weak=False)
     signals.worker_ready.connect(on_ready, weak=False)
     signals.worker_shutdown.connect(on_shutdown, weak=False)
-    app._neudf_signal_handlers = (on_init, on_ready, on_shutdown)  # type: ignore[attr-defined]
+    signals.task_failure.connect(on_failure, weak=False)
+    app._neudf_signal_handlers = (on_init, on_ready, on_shutdown, on_failure)  # type: ignore[attr-defined]
 

@@ -388,11 +388,14 @@ def _clear_outputs(data_dir: Path) -> None:
         (data_dir / name).unlink(missing_ok=True)
 
 
+DEFAULT_FRAMES = 200  # enough views for poses and training, few enough for minutes of SIFT
+
+
 def extract_frames(
     video: str | Path,
     data_dir: str | Path,
     *,
-    n_frames: int = 200,
+    n_frames: int = DEFAULT_FRAMES,
     max_size: int = 1600,
     limits: VideoLimits | None = None,
     min_sharpness: float = DEFAULT_MIN_SHARPNESS,

@@ -6,6 +6,9 @@ From the pinhole model of the poses stage:
    so a few frames aimed elsewhere do not pull it). The sparse points near that point (closer than
    ``near_fraction`` of the median camera distance) are the object and its immediate surroundings; the
    middle of their robust bounding box refines the centre and their spread gives the object's radius.
+   A floor under the object (a dense level of points below it, spreading wider than the object) is left
+   out of both, and its height goes into DATA/region.json: training leaves what lies under it to the
+   background model, so neither the floor nor the object's shadow on it becomes surface.
 2. The world is turned upright, so the mesh comes out upright (y up, as glTF expects): people hold a
    phone level while tilting it, so "up" is the direction perpendicular to all cameras' right vectors, on
    the side of their mean up vector; +z points towards the first frame.
@@ -33,6 +36,7 @@ import numpy as np
 import pycolmap
 from pydantic import BaseModel, ConfigDict, Field
 
+from neudf_core.dataset import REGION_FILE
 from neudf_core.progress import ProgressFn, null_progress
 from worker.errors import StageError
 from worker.stages.frames import update_capture_json, write_json_atomic
@@ -56,6 +60,8 @@ class SceneOptions(BaseModel):
     min_object_points: int = Field(20, ge=1, description="Fewer near points: use the axes point and camera "
                                    "distances alone.")
     max_point_error_px: float = Field(2.0, gt=0, description="Sparse points with a larger reprojection error are ignored.")
+    floor_band: float = Field(0.015, gt=0, lt=0.2, description="Half the thickness of the floor's level of sparse "
+                              "points, as a share of the median camera distance.")
     plot_points: int = Field(6000, ge=0, description="Most sparse points drawn in cameras.png.")
 
 
@@ -164,8 +170,33 @@ def upright_rotation(up: np.ndarray, toward: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z])
 
 
-def _object_sphere(cams: SceneCameras, opts: SceneOptions) -> tuple[np.ndarray, float, int, list[str]]:
-    """Centre and radius (COLMAP units) of the object, the number of sparse points used, warnings."""
+def floor_height(heights: np.ndarray, spread: np.ndarray, band: float, min_points: int) -> float | None:
+    """The floor under the object: a dense level of sparse points below the centre that spreads wider than
+    the object does. ``heights``: the near points' heights above the centre (upright), ``spread``: their
+    horizontal distance from it, ``band``: half the floor level's thickness. None when there is no such level.
+    """
+    below = heights < -band
+    if below.sum() < min_points:
+        return None
+    edges = np.arange(heights[below].min(), 0.0, band)
+    if len(edges) < 2:
+        return None
+    counts, edges = np.histogram(heights[below], bins=edges)
+    level = float(edges[np.argmax(counts)] + band / 2)
+    on = np.abs(heights - level) < band
+    above = heights > level + band
+    if on.sum() < max(min_points, 0.1 * len(heights)) or above.sum() < min_points:
+        return None
+    # A floor reaches beyond the object's footprint; a hem or a can's bottom rim does not.
+    if np.percentile(spread[on], 80) < 1.2 * np.percentile(spread[above], 80):
+        return None
+    return level + band
+
+
+def _object_sphere(cams: SceneCameras, opts: SceneOptions, up: np.ndarray
+                   ) -> tuple[np.ndarray, float, int, float | None, list[str]]:
+    """Centre and radius (COLMAP units) of the object, the number of sparse points used, the height of the
+    floor above the centre (along ``up``; None when there is none) and warnings."""
     centers, warnings = cams.centers, []
     try:
         focus = axes_point(centers, cams.axes)
@@ -177,11 +208,18 @@ def _object_sphere(cams: SceneCameras, opts: SceneOptions) -> tuple[np.ndarray, 
     near = cams.points[np.linalg.norm(cams.points - focus, axis=1) < opts.near_fraction * distance]
     if len(near) < opts.min_object_points:
         warnings.append(f"only {len(near)} sparse points near the centre: the object's size is a guess")
-        return focus, 0.3 * distance, len(near), warnings
+        return focus, 0.3 * distance, len(near), None, warnings
+    heights = (near - focus) @ up
+    spread = np.linalg.norm((near - focus) - heights[:, None] * up, axis=1)
+    floor = floor_height(heights, spread, opts.floor_band * distance, opts.min_object_points)
+    if floor is not None:
+        near = near[heights > floor]
     lo, hi = np.percentile(near, [100 - opts.object_percentile, opts.object_percentile], axis=0)
     centre = (lo + hi) / 2
     radius = float(np.percentile(np.linalg.norm(near - centre, axis=1), opts.object_percentile))
-    return centre, radius, len(near), warnings
+    if floor is not None:
+        floor -= float((centre - focus) @ up)
+    return centre, radius, len(near), floor, warnings
 
 
 def is_done(data_dir: str | Path) -> bool:
@@ -304,8 +342,9 @@ def write_scene(
     progress(0.0, "reading the camera model")
     cams = load_model(model_dir, opts.max_point_error_px)
 
-    centre, radius, n_near, warnings = _object_sphere(cams, opts)
-    rotation = upright_rotation(up_direction(cams.rights, cams.ups), cams.centers[0] - centre)
+    up = up_direction(cams.rights, cams.ups)
+    centre, radius, n_near, floor, warnings = _object_sphere(cams, opts, up)
+    rotation = upright_rotation(up, cams.centers[0] - centre)
     # The world of the dataset: COLMAP's, moved to the object's centre and turned upright (COLMAP's units).
     centers_w = (cams.centers - centre) @ rotation.T
     sphere_radius = radius / opts.object_fill
@@ -352,6 +391,9 @@ def write_scene(
         "images": len(entries),
         "image_size": [int(cams.width), int(cams.height)],
     }
+    floor_unit = None if floor is None or floor / sphere_radius <= -1.0 else round(float(floor / sphere_radius), 4)
+    write_json_atomic(data_dir / REGION_FILE, {"floor_y": floor_unit})
+    scene["floor_y_unit"] = floor_unit
     if warnings:
         scene["warnings"] = warnings
     seconds = time.perf_counter() - t0

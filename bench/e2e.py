@@ -1,0 +1,239 @@
+"""Benchmark of record: what a user gets from a phone video of a garment, with the defaults.
+
+Each garment of ../shared/data/meshes is rendered as a handheld walk-around phone video (portrait 720x1280,
+8 s at 30 fps, H.264), hanging above a textured floor in a textured room with boxes standing about, its
+shadow on the floor (cached in --work). Then the same code path as ``neudf reconstruct``
+(``worker.pipeline.run_pipeline``) with default options, on this machine's default device. The mesh is
+moved into the ground truth's frame by the similarity that maps the estimated cameras onto the true ones,
+and compared with the garment (CONTRACT's convention: Chamfer and F-score at 0.01 in GT's unit sphere,
+boundary loops against GT's). Prints a table, writes JSON under bench/results/ and, per garment, a picture
+of the ground truth beside the result from the same camera.
+
+    .venv/bin/python bench/e2e.py                                  # the five garments, the defaults
+    .venv/bin/python bench/e2e.py --meshes tshirt --weight neus_sdf   # the closed-surface baseline, same capture
+    .venv/bin/python bench/e2e.py --render-only                    # cache the videos, train nothing
+
+``--weight neus_sdf`` reuses the capture (frames, poses, scene) of the NeUDF job of the same garment when
+it is in --work, so both methods see the same cameras.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import sys
+import time
+from fractions import Fraction
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from neudf_core import synthetic  # noqa: E402
+from neudf_core.metrics import evaluate, load_mesh  # noqa: E402
+from worker.capture import align_cameras, load_dataset_cameras  # noqa: E402
+from worker.pipeline import JobOptions, run_pipeline  # noqa: E402
+
+MESH_DIR = ROOT.parent / "shared" / "data" / "meshes"
+RESULTS = ROOT / "bench" / "results"
+PICTURES = ROOT / "docs" / "images"
+WIDTH, HEIGHT, FPS, SECONDS = 720, 1280, 30, 8
+CAPTURE_STAGES = ("frames", "poses", "scene")
+
+
+def garments(names: list[str] | None) -> list[Path]:
+    found = sorted(MESH_DIR.glob("*.obj"))
+    if names:
+        found = [p for p in found if p.stem in names]
+        missing = set(names) - {p.stem for p in found}
+        if missing:
+            raise SystemExit(f"no such garment in {MESH_DIR}: {', '.join(sorted(missing))}")
+    return found
+
+
+def load_garment(path: Path):
+    """The garment, texture kept, moved into its unit sphere (fills 0.8 of it): the frame the video is shot in."""
+    import trimesh
+
+    mesh = trimesh.load(path, process=False, force="mesh")
+    mesh.apply_transform(np.linalg.inv(synthetic.unit_sphere_transform(mesh)))
+    return mesh
+
+
+def render_video(path: Path, garment, seed: int, chunk: int = 8) -> np.ndarray:
+    """Render and encode the walk-around in chunks (bounded memory); returns the true c2w (N, 4, 4)."""
+    import av
+
+    room = synthetic.room_scene(garment, seed=seed)
+    cameras = synthetic.handheld_orbit(FPS * SECONDS, width=WIDTH, height=HEIGHT, seed=seed)
+    tmp = path.with_name(path.stem + ".partial.mp4")
+    t0 = time.perf_counter()
+    with av.open(str(tmp), mode="w", format="mp4") as container:
+        stream = container.add_stream("libx264", rate=Fraction(FPS))
+        stream.width, stream.height, stream.pix_fmt = WIDTH, HEIGHT, "yuv420p"
+        stream.options = {"crf": "20", "preset": "medium"}  # about what a phone's encoder leaves
+        for start in range(0, len(cameras), chunk):
+            images, _ = synthetic.render_room(room, cameras[start:start + chunk], seed=seed)
+            for image in images:
+                for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
+                    container.mux(packet)
+            done = min(start + chunk, len(cameras))
+            print(f"  rendered {done}/{len(cameras)} frames, {time.perf_counter() - t0:.0f} s", flush=True)
+        for packet in stream.encode():
+            container.mux(packet)
+    os.replace(tmp, path)
+    return np.stack([c.c2w for c in cameras])
+
+
+def cached_video(work: Path, mesh_path: Path, seed: int) -> tuple[Path, np.ndarray]:
+    video, cams = work / "videos" / f"{mesh_path.stem}.mp4", work / "videos" / f"{mesh_path.stem}_c2w.npy"
+    if not (video.is_file() and cams.is_file()):
+        video.parent.mkdir(parents=True, exist_ok=True)
+        print(f"rendering {mesh_path.stem}: {FPS * SECONDS} frames {WIDTH}x{HEIGHT} -> {video}", flush=True)
+        np.save(cams, render_video(video, load_garment(mesh_path), seed))
+    return video, np.load(cams)
+
+
+def printer(name: str):
+    last = [0.0, ""]
+
+    def report(fraction: float, message: str = "", **info: Any) -> None:
+        stage = info.get("stage", "")
+        if time.perf_counter() - last[0] > 30 or stage != last[1]:
+            print(f"  [{name}] {fraction * 100:5.1f}%  {message}", flush=True)
+            last[0], last[1] = time.perf_counter(), stage
+
+    return report
+
+
+def reuse_capture(source: Path, job: Path) -> None:
+    """Give ``job`` the finished capture of ``source`` (same video), so a baseline trains on the same cameras."""
+    if (job / "stages" / "scene.json").is_file() or not (source / "stages" / "scene.json").is_file():
+        return
+    for folder in ("input", "data"):
+        shutil.copytree(source / folder, job / folder, dirs_exist_ok=True)
+    (job / "stages").mkdir(parents=True, exist_ok=True)
+    for stage in CAPTURE_STAGES:
+        shutil.copy2(source / "stages" / f"{stage}.json", job / "stages" / f"{stage}.json")
+
+
+def aligned_mesh(job: Path, true_c2w: np.ndarray):
+    """The job's mesh moved from its unit sphere into the true world by the camera similarity."""
+    mesh = load_mesh(job / "mesh" / "mesh.ply")
+    _, est = load_dataset_cameras(job / "data")
+    entries = json.loads((job / "data" / "frames.json").read_text())
+    s, R, t = align_cameras(est, true_c2w[[e["frame_index"] for e in entries]])
+    mesh.vertices = s * np.asarray(mesh.vertices) @ R.T + t
+    return mesh
+
+
+def picture(path: Path, gt, pred, size: int = 320) -> None:
+    """Ground truth (left) and the result (right), rendered from the same camera on white."""
+    from PIL import Image
+
+    cam = synthetic.Camera(synthetic.intrinsics(size, size, 40.0),
+                           synthetic.look_at(np.array([1.6, 0.9, 2.6]), np.zeros(3)), size, size)
+    panels = []
+    for mesh in (gt, pred):
+        plain = mesh.copy()
+        plain.visual = synthetic.trimesh.visual.ColorVisuals(plain, vertex_colors=[200, 200, 205, 255])
+        image, _ = synthetic.render(plain, [cam], "white")
+        panels.append(image[0])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.concatenate(panels, axis=1)).save(path)
+
+
+def run_garment(mesh_path: Path, args: argparse.Namespace, device: str) -> dict[str, Any]:
+    name = mesh_path.stem
+    video, true_c2w = cached_video(args.work, mesh_path, args.seed)
+    job = args.work / "jobs" / f"{name}_{args.weight}"
+    if args.weight != "neudf":
+        reuse_capture(args.work / "jobs" / f"{name}_neudf", job)
+    options = JobOptions(weight=args.weight, **({"minutes": args.minutes} if args.minutes is not None else {}))
+    t0 = time.perf_counter()
+    metrics = run_pipeline(video, job, options, printer(name), device=device)
+    wall = time.perf_counter() - t0
+    stages = {s: json.loads((job / "stages" / f"{s}.json").read_text()) for s in
+              ("frames", "poses", "scene", "train", "mesh", "export")}
+    gt = load_garment(mesh_path)
+    pred = aligned_mesh(job, true_c2w)
+    figures = evaluate(pred, gt)
+    picture(PICTURES / f"e2e_{name}_{args.weight}.png", gt, pred)
+    return {
+        "mesh": name, "weight": args.weight, "device": device, "options": options.model_dump(exclude_none=True),
+        "chamfer": figures["chamfer"], "fscore": figures["fscore"],
+        "boundary_loops_pred": figures["boundary_loops_pred"], "boundary_loops_gt": figures["boundary_loops_gt"],
+        "faces": int(len(pred.faces)),
+        "minutes": {s: round(rec["seconds"] / 60, 2) for s, rec in stages.items()},
+        "minutes_total": round(sum(rec["seconds"] for rec in stages.values()) / 60, 2),
+        "wall_minutes_this_run": round(wall / 60, 2),
+        "frames_registered": metrics.get("frames_registered"), "frames_total": metrics.get("frames_total"),
+        "train": {k: stages["train"]["metrics"].get(k) for k in ("iters", "train_psnr", "stopped_by", "images")},
+    }
+
+
+def print_table(rows: list[dict[str, Any]]) -> None:
+    head = "| garment | method | Chamfer x1e-3 | F-score | loops (GT) | faces | min: frames / poses / scene / train / mesh / export | total min |"
+    print(head)
+    print("|---" * 8 + "|")
+    for r in rows:
+        if "error" in r:
+            print(f"| {r['mesh']} | {r['weight']} | failed: {r['error']} | | | | | |")
+            continue
+        m = r["minutes"]
+        stages = " / ".join(f"{m[s]:.1f}" for s in ("frames", "poses", "scene", "train", "mesh", "export"))
+        print(f"| {r['mesh']} | {r['weight']} | {r['chamfer'] * 1e3:.1f} | {r['fscore']:.2f} | "
+              f"{r['boundary_loops_pred']} ({r['boundary_loops_gt']}) | {r['faces']} | {stages} | "
+              f"{r['minutes_total']:.1f} |")
+    ok = [r for r in rows if "error" not in r]
+    if ok:
+        print(f"mean Chamfer x1e-3: {np.mean([r['chamfer'] for r in ok]) * 1e3:.1f} over {len(ok)} garments")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--meshes", nargs="*", help="Garment names (default: every mesh in ../shared/data/meshes).")
+    parser.add_argument("--weight", default="neudf", choices=["neudf", "neus_sdf", "neus_abs"])
+    parser.add_argument("--minutes", type=float, help="Training budget (default: the job default).")
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--seed", type=int, default=0, help="Seed of the room and the camera path.")
+    parser.add_argument("--work", type=Path, default=Path("/tmp/neudf-bench-e2e"), help="Videos and job folders.")
+    parser.add_argument("--out", type=Path, help="JSON report (default bench/results/e2e_<weight>_<device>.json).")
+    parser.add_argument("--render-only", action="store_true", help="Render and cache the videos, then stop.")
+    args = parser.parse_args()
+
+    import torch
+
+    device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device
+    meshes = garments(args.meshes)
+    if args.render_only:
+        for path in meshes:
+            cached_video(args.work, path, args.seed)
+        return
+    out = args.out or RESULTS / f"e2e_{args.weight}_{device}.json"
+    previous = json.loads(out.read_text())["rows"] if out.is_file() else []
+    rows = [r for r in previous if r["mesh"] not in {p.stem for p in meshes}]
+    for path in meshes:
+        try:
+            rows.append(run_garment(path, args, device))
+        except Exception as exc:  # one failed garment is a row with its error, not a lost table
+            rows.append({"mesh": path.stem, "weight": args.weight, "error": f"{type(exc).__name__}: {exc}"})
+        rows.sort(key=lambda r: r["mesh"])
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps({
+            "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "device": device},
+            "video": {"width": WIDTH, "height": HEIGHT, "fps": FPS, "seconds": SECONDS, "seed": args.seed},
+            "rows": rows}, indent=2))
+        print_table(rows)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
