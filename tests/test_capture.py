@@ -20,7 +20,7 @@ from PIL import Image
 from neudf_core import synthetic
 from neudf_core.synthetic import blob_texture
 from neudf_core.progress import Cancelled
-from worker.capture import load_dataset_cameras, pose_errors, run_capture
+from worker.capture import align_cameras, load_dataset_cameras, pose_errors, run_capture
 from worker.errors import StageError
 from worker.stages import frames as frames_stage
 from worker.stages import poses as poses_stage
@@ -242,6 +242,34 @@ def test_object_inside_the_unit_sphere_and_cameras_outside(captured, orbit):
     assert radii.max() < 1.0
     assert radii.max() > 0.4  # and fills a fair part of it
     assert np.linalg.norm(captured["c2w"][:, :3, 3], axis=1).min() > 1.0
+
+
+@pytest.mark.slow
+def test_object_region_leaves_a_textured_floor_out(tmp_path):
+    """A sheet hanging above a textured floor in a furnished room, filmed by hand: the scene stage finds the
+    floor, and the region training calls object (the unit sphere above region.json's floor) holds the whole
+    sheet and none of the floor, though the floor reaches into the sphere."""
+    room = synthetic.room_scene(textured_sheet(), floor_y=-1.0)
+    cameras = synthetic.handheld_orbit(40, width=240, height=400, seed=3)
+    images, _ = synthetic.render_room(room, cameras)
+    video = encode_video(tmp_path / "room.mp4", images)
+    data = tmp_path / "data"
+    run_capture(video, data, n_frames=40, pose_options=PoseOptions(num_threads=1))
+    floor_y = json.loads((data / "region.json").read_text())["floor_y"]
+    assert floor_y is not None
+
+    _, c2w = load_dataset_cameras(data)
+    entries = json.loads((data / "frames.json").read_text())
+    assert len(entries) >= 30
+    s, R, t = align_cameras(c2w, np.stack([cameras[e["frame_index"]].c2w for e in entries]))
+    to_data = lambda p: (p - t) @ R / s  # noqa: E731  (true world -> the dataset's unit sphere)
+    grid = np.stack(np.meshgrid(np.linspace(-2, 2, 81), np.linspace(-2, 2, 81)), -1).reshape(-1, 2)
+    floor = to_data(np.stack([grid[:, 0], np.full(len(grid), room.floor_y), grid[:, 1]], -1))
+    floor = floor[np.linalg.norm(floor, axis=1) < 1.0]
+    assert len(floor) > 100  # the floor does reach into the sphere ...
+    assert floor[:, 1].max() <= floor_y + 0.02  # ... and lies under the cut
+    sheet = to_data(room.parts[0].vertices)
+    assert np.linalg.norm(sheet, axis=1).max() < 1.0 and sheet[:, 1].min() > floor_y + 0.02
 
 
 @pytest.mark.slow

@@ -61,10 +61,11 @@ class PoseOptions(BaseModel):
 
     camera_model: Literal["OPENCV", "SIMPLE_RADIAL", "RADIAL", "PINHOLE", "SIMPLE_PINHOLE"] = Field(
         "OPENCV", description="COLMAP camera model shared by all frames (with distortion unless *PINHOLE).")
-    sift_max_image_size: int = Field(1600, ge=64, description="Longest side SIFT sees.")
-    sift_max_features: int = Field(8192, ge=100, description="Most SIFT features per image.")
+    sift_max_image_size: int = Field(1024, ge=64, description="Longest side SIFT sees.")
+    sift_max_features: int = Field(2048, ge=100, description="Most SIFT features per image: matching costs the "
+                                   "square of it, mapping grows with the points it makes.")
     exhaustive_below: int = Field(60, ge=0, description="Match all pairs when there are fewer frames than this.")
-    overlap: int = Field(10, ge=1, description="Sequential matching: successors each frame is matched with.")
+    overlap: int = Field(6, ge=1, description="Sequential matching: successors each frame is matched with.")
     loop_keyframes: int = Field(25, ge=0, description="Frames spread over the video matched all-against-all.")
     doubling: bool = Field(True, description="Also match each frame with frames at doubling distances in time.")
     far_min_inliers: int = Field(
@@ -73,6 +74,9 @@ class PoseOptions(BaseModel):
     max_jump_factor: float = Field(
         10.0, gt=1, description="A step between consecutive frames this many times the median step (position) "
         "or 45 degrees and this many median rotations is a pose jump; jumps trigger sequential-only mapping.")
+    ba_global_ratio: float = Field(
+        1.4, gt=1, description="Bundle-adjust the whole model each time it has grown by this factor (COLMAP: 1.1); "
+        "between, each new frame gets a local adjustment. Global adjustments dominate a 200-frame video's mapping.")
     min_registered_fraction: float = Field(0.4, ge=0, le=1, description="Below this share of frames: failure.")
     good_registered_fraction: float = Field(0.8, ge=0, le=1, description="Below this share: a warning.")
     min_registered: int = Field(8, ge=2, description="Fewest registered frames, whatever the share.")
@@ -239,6 +243,8 @@ def _map(db: Path, image_dir: Path, sparse: Path, n_images: int, opts: PoseOptio
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = opts.num_threads
     options.random_seed = opts.seed
+    options.ba_global_frames_ratio = opts.ba_global_ratio
+    options.ba_global_points_ratio = opts.ba_global_ratio
     token = pycolmap.CancellationToken()
     registered = 0
     cancelled: list[Cancelled] = []

@@ -54,7 +54,7 @@ class SceneOptions(BaseModel):
     object_fill: float = Field(0.7, gt=0, lt=1, description="Object radius as a share of the unit sphere's.")
     near_fraction: float = Field(0.5, gt=0, lt=1, description="Points this close to the centre (share of the "
                                  "median camera distance) belong to the object.")
-    object_percentile: float = Field(98.0, gt=50, le=100, description="Percentile of the object points' "
+    object_percentile: float = Field(90.0, gt=50, le=100, description="Percentile of the object points' "
                                      "distances taken as the object's radius (robust to stray points).")
     camera_clearance: float = Field(1.1, ge=1, description="Cameras at least this many unit radii from the centre.")
     min_object_points: int = Field(20, ge=1, description="Fewer near points: use the axes point and camera "
@@ -205,15 +205,21 @@ def _object_sphere(cams: SceneCameras, opts: SceneOptions, up: np.ndarray
         warnings.append("the cameras do not look at a common point: the scene centre is a guess")
         focus = np.median(cams.points, axis=0) if len(cams.points) else centers.mean(axis=0)
     distance = float(np.median(np.linalg.norm(centers - focus, axis=1)))
-    near = cams.points[np.linalg.norm(cams.points - focus, axis=1) < opts.near_fraction * distance]
-    if len(near) < opts.min_object_points:
-        warnings.append(f"only {len(near)} sparse points near the centre: the object's size is a guess")
-        return focus, 0.3 * distance, len(near), None, warnings
-    heights = (near - focus) @ up
-    spread = np.linalg.norm((near - focus) - heights[:, None] * up, axis=1)
-    floor = floor_height(heights, spread, opts.floor_band * distance, opts.min_object_points)
+    offsets = cams.points - focus
+    heights = offsets @ up
+    spread = np.linalg.norm(offsets - heights[:, None] * up, axis=1)
+    reach = opts.near_fraction * distance
+    near_mask = np.linalg.norm(offsets, axis=1) < reach
+    if near_mask.sum() < opts.min_object_points:
+        warnings.append(f"only {int(near_mask.sum())} sparse points near the centre: the object's size is a guess")
+        return focus, 0.3 * distance, int(near_mask.sum()), None, warnings
+    # The floor is looked for in the column under the object, deeper than the near ball reaches: a ball clips a
+    # floor at its edge to a small disc, which looks like the object's own bottom.
+    column = (spread < reach) & (heights < reach) & (heights > -2 * reach)
+    floor = floor_height(heights[column], spread[column], opts.floor_band * distance, opts.min_object_points)
     if floor is not None:
-        near = near[heights > floor]
+        near_mask &= heights > floor
+    near = cams.points[near_mask]
     lo, hi = np.percentile(near, [100 - opts.object_percentile, opts.object_percentile], axis=0)
     centre = (lo + hi) / 2
     radius = float(np.percentile(np.linalg.norm(near - centre, axis=1), opts.object_percentile))
