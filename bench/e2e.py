@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 
 from neudf_core import synthetic  # noqa: E402
 from neudf_core.metrics import evaluate, load_mesh  # noqa: E402
-from worker.capture import align_cameras, load_dataset_cameras  # noqa: E402
+from worker.capture import align_cameras, load_dataset_cameras, pose_errors  # noqa: E402
 from worker.pipeline import JobOptions, run_pipeline  # noqa: E402
 
 MESH_DIR = ROOT.parent / "shared" / "data" / "meshes"
@@ -116,21 +116,25 @@ def reuse_capture(source: Path, job: Path) -> None:
     """Give ``job`` the finished capture of ``source`` (same video), so a baseline trains on the same cameras."""
     if (job / "stages" / "scene.json").is_file() or not (source / "stages" / "scene.json").is_file():
         return
-    for folder in ("input", "data"):
-        shutil.copytree(source / folder, job / folder, dirs_exist_ok=True)
+    shutil.copytree(source / "data", job / "data", dirs_exist_ok=True)
     (job / "stages").mkdir(parents=True, exist_ok=True)
     for stage in CAPTURE_STAGES:
         shutil.copy2(source / "stages" / f"{stage}.json", job / "stages" / f"{stage}.json")
 
 
-def aligned_mesh(job: Path, true_c2w: np.ndarray):
-    """The job's mesh moved from its unit sphere into the true world by the camera similarity."""
+def aligned_mesh(job: Path, true_c2w: np.ndarray) -> tuple[Any, dict[str, float]]:
+    """The job's mesh moved from its unit sphere into the true world by the camera similarity, and how far
+    the estimated cameras are from the true ones after it."""
     mesh = load_mesh(job / "mesh" / "mesh.ply")
     _, est = load_dataset_cameras(job / "data")
     entries = json.loads((job / "data" / "frames.json").read_text())
-    s, R, t = align_cameras(est, true_c2w[[e["frame_index"] for e in entries]])
+    truth = true_c2w[[e["frame_index"] for e in entries]]
+    s, R, t = align_cameras(est, truth)
     mesh.vertices = s * np.asarray(mesh.vertices) @ R.T + t
-    return mesh
+    errors = pose_errors(est, truth)
+    orbit = float(np.median(np.linalg.norm(truth[:, :3, 3], axis=1)))
+    return mesh, {"rotation_deg_median": round(float(np.median(errors["rotation_deg"])), 4),
+                  "centre_rms_of_orbit": round(float(np.sqrt(np.mean(errors["centre_err"] ** 2))) / orbit, 5)}
 
 
 def picture(path: Path, gt, pred, size: int = 320) -> None:
@@ -162,7 +166,7 @@ def run_garment(mesh_path: Path, args: argparse.Namespace, device: str) -> dict[
     stages = {s: json.loads((job / "stages" / f"{s}.json").read_text()) for s in
               ("frames", "poses", "scene", "train", "mesh", "export")}
     gt = load_garment(mesh_path)
-    pred = aligned_mesh(job, true_c2w)
+    pred, cameras = aligned_mesh(job, true_c2w)
     figures = evaluate(pred, gt)
     picture(PICTURES / f"e2e_{name}_{args.weight}.png", gt, pred)
     return {
@@ -173,6 +177,7 @@ def run_garment(mesh_path: Path, args: argparse.Namespace, device: str) -> dict[
         "minutes": {s: round(rec["seconds"] / 60, 2) for s, rec in stages.items()},
         "minutes_total": round(sum(rec["seconds"] for rec in stages.values()) / 60, 2),
         "wall_minutes_this_run": round(wall / 60, 2),
+        "camera_error": cameras,
         "frames_registered": metrics.get("frames_registered"), "frames_total": metrics.get("frames_total"),
         "train": {k: stages["train"]["metrics"].get(k) for k in ("iters", "train_psnr", "stopped_by", "images")},
     }
