@@ -349,6 +349,8 @@ def _stage_eta(stage: Stage, ctx: JobContext, fraction: float, elapsed: float, i
     """Seconds left in a running stage: its own figure if it gives one, else its speed so far, else the prior."""
     if "eta_s" in info:
         return float(info["eta_s"])
+    if fraction >= 1.0:
+        return 0.0
     prior = max(stage.expect_s(ctx) - elapsed, 0.0)
     if fraction < 0.1 or elapsed < 5.0:
         return prior
@@ -379,7 +381,7 @@ def _run_stage(stage: Stage, ctx: JobContext, progress: ProgressFn, start: float
     _write_marker(ctx.job_dir, stage.name, {"finished_at": time.time(), "seconds": seconds, "metrics": figures,
                                             "options": stage.options_used(ctx)})
     progress(end, f"{stage.name}: done in {seconds:.1f} s", stage=stage.name, stage_progress=1.0, event="done",
-             seconds=seconds, metrics=figures)
+             seconds=seconds, metrics=figures, eta_s=0.0, job_eta_s=later_s)
     return figures
 
 

@@ -60,6 +60,8 @@ class SceneOptions(BaseModel):
     min_object_points: int = Field(20, ge=1, description="Fewer near points: use the axes point and camera "
                                    "distances alone.")
     max_point_error_px: float = Field(2.0, gt=0, description="Sparse points with a larger reprojection error are ignored.")
+    min_track_length: int = Field(3, ge=2, description="Sparse points seen in fewer frames are ignored: two-view "
+                                  "points off the object's silhouette float in the air around it.")
     floor_band: float = Field(0.015, gt=0, lt=0.2, description="Half the thickness of the floor's level of sparse "
                               "points, as a share of the median camera distance.")
     plot_points: int = Field(6000, ge=0, description="Most sparse points drawn in cameras.png.")
@@ -99,7 +101,7 @@ class SceneCameras(BaseModel):
         return -self.R[:, 1, :]
 
 
-def load_model(model_dir: str | Path, max_point_error_px: float = 2.0) -> SceneCameras:
+def load_model(model_dir: str | Path, max_point_error_px: float = 2.0, min_track_length: int = 3) -> SceneCameras:
     """Read a pinhole COLMAP model (one shared camera) into arrays, images sorted by name."""
     rec = pycolmap.Reconstruction(str(model_dir))
     images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
@@ -110,7 +112,8 @@ def load_model(model_dir: str | Path, max_point_error_px: float = 2.0) -> SceneC
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     R = np.stack([im.cam_from_world().rotation.matrix() for im in images])
     t = np.stack([np.asarray(im.cam_from_world().translation) for im in images])
-    pts = [(p.xyz, p.color) for p in rec.points3D.values() if p.error <= max_point_error_px and p.track.length() >= 2]
+    pts = [(p.xyz, p.color) for p in rec.points3D.values() if p.error <= max_point_error_px
+           and p.track.length() >= min_track_length]
     points = np.array([p for p, _ in pts]).reshape(-1, 3)
     colors = np.array([c for _, c in pts], dtype=np.uint8).reshape(-1, 3)
     return SceneCameras(names=[im.name for im in images], K=K, width=cam.width, height=cam.height, R=R, t=t,
@@ -346,7 +349,7 @@ def write_scene(
     if not (model_dir / "images.bin").is_file():
         raise StageError(STAGE, "no camera poses to normalise: run the poses stage first", "missing")
     progress(0.0, "reading the camera model")
-    cams = load_model(model_dir, opts.max_point_error_px)
+    cams = load_model(model_dir, opts.max_point_error_px, opts.min_track_length)
 
     up = up_direction(cams.rights, cams.ups)
     centre, radius, n_near, floor, warnings = _object_sphere(cams, opts, up)
