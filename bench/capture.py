@@ -80,13 +80,15 @@ def render_video(path: Path, mesh_path: Path, n: int, width: int, height: int, f
     return np.stack([c.c2w for c in cameras])
 
 
-def printer() -> Any:
+def printer(label: str = "", every_s: float = 10.0) -> Any:
+    """A progress function that prints a line per stage and at most one every ``every_s`` seconds within it."""
     last = [0.0, ""]
+    prefix = f"[{label}] " if label else ""
 
     def report(fraction: float, message: str = "", **info: Any) -> None:
         stage = info.get("stage", "")
-        if time.perf_counter() - last[0] > 10 or stage != last[1]:
-            print(f"  {fraction * 100:5.1f}%  {message}", flush=True)
+        if time.perf_counter() - last[0] > every_s or stage != last[1]:
+            print(f"  {prefix}{fraction * 100:5.1f}%  {message}", flush=True)
             last[0], last[1] = time.perf_counter(), stage
 
     return report

@@ -35,6 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.capture import printer  # noqa: E402
 from neudf_core import synthetic  # noqa: E402
 from neudf_core.metrics import evaluate, load_mesh  # noqa: E402
 from worker.capture import align_cameras, load_dataset_cameras, pose_errors  # noqa: E402
@@ -100,18 +101,6 @@ def cached_video(work: Path, mesh_path: Path, seed: int) -> tuple[Path, np.ndarr
     return video, np.load(cams)
 
 
-def printer(name: str):
-    last = [0.0, ""]
-
-    def report(fraction: float, message: str = "", **info: Any) -> None:
-        stage = info.get("stage", "")
-        if time.perf_counter() - last[0] > 30 or stage != last[1]:
-            print(f"  [{name}] {fraction * 100:5.1f}%  {message}", flush=True)
-            last[0], last[1] = time.perf_counter(), stage
-
-    return report
-
-
 def reuse_capture(source: Path, job: Path) -> None:
     """Give ``job`` the finished capture of ``source`` (same video), so a baseline trains on the same cameras."""
     if (job / "stages" / "scene.json").is_file() or not (source / "stages" / "scene.json").is_file():
@@ -161,7 +150,7 @@ def run_garment(mesh_path: Path, args: argparse.Namespace, device: str) -> dict[
         reuse_capture(args.work / "jobs" / f"{name}_neudf", job)
     options = JobOptions(weight=args.weight, **({"minutes": args.minutes} if args.minutes is not None else {}))
     t0 = time.perf_counter()
-    metrics = run_pipeline(video, job, options, printer(name), device=device)
+    metrics = run_pipeline(video, job, options, printer(name, every_s=30), device=device)
     wall = time.perf_counter() - t0
     stages = {s: json.loads((job / "stages" / f"{s}.json").read_text()) for s in
               ("frames", "poses", "scene", "train", "mesh", "export")}
