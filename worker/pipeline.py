@@ -231,7 +231,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("frames", 0.04, _frames, lambda c: [c.data_dir / "image", c.data_dir / "frames.json"],
           keys=("frames", "max_size"), expect_s=lambda c: 0.15 * c.frames),
     Stage("poses", 0.16, _poses, lambda c: [c.data_dir / "colmap" / "poses.json"],
-          expect_s=lambda c: 1.2 * c.frames),
+          expect_s=lambda c: 2.75 * c.frames),
     Stage("scene", 0.02, _scene, lambda c: [c.data_dir / "cameras_sphere.npz"]),
     # Not cleared when train itself runs again: the trainer resumes from its checkpoint (or goes on to more
     # iterations of the same configuration).
@@ -240,9 +240,9 @@ STAGES: tuple[Stage, ...] = (
           expect_s=lambda c: 60.0 * c.train_minutes if c.train_minutes else 0.25 * (c.options.iters or 4000)),
     Stage("mesh", 0.10, _mesh, lambda c: [c.mesh_file], owns=lambda c: [c.mesh_file.parent],
           keys=("mesh_method", "mesh_resolution", "mesh_threshold", "mesh_min_faces", "mesh_min_seen"),
-          expect_s=lambda c: 60.0),
+          expect_s=lambda c: 20.0),
     Stage("export", 0.03, _export, lambda c: [c.export_dir / "mesh.glb", c.export_dir / "metrics.json"],
-          expect_s=lambda c: 20.0,
+          expect_s=lambda c: 10.0,
           owns=lambda c: [c.export_dir / n for n in ("mesh.glb", "mesh.ply", "preview.png", "loss.png", "metrics.json")]),
 )
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)

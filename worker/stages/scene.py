@@ -54,7 +54,7 @@ class SceneOptions(BaseModel):
     object_fill: float = Field(0.7, gt=0, lt=1, description="Object radius as a share of the unit sphere's.")
     near_fraction: float = Field(0.5, gt=0, lt=1, description="Points this close to the centre (share of the "
                                  "median camera distance) belong to the object.")
-    object_percentile: float = Field(90.0, gt=50, le=100, description="Percentile of the object points' "
+    object_percentile: float = Field(98.0, gt=50, le=100, description="Percentile of the object points' "
                                      "distances taken as the object's radius (robust to stray points).")
     camera_clearance: float = Field(1.1, ge=1, description="Cameras at least this many unit radii from the centre.")
     min_object_points: int = Field(20, ge=1, description="Fewer near points: use the axes point and camera "
