@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -227,7 +228,9 @@ class Trainer:
         folder = self.run_dir / "validation"
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / f"{self.step:07d}.png"
-        Image.fromarray((panel * 255).round().astype(np.uint8)).save(path)
+        tmp = folder / f".{self.step:07d}.tmp"  # the service serves the newest *.png: never a half-written one
+        Image.fromarray((panel * 255).round().astype(np.uint8)).save(tmp, format="PNG")
+        os.replace(tmp, path)
         return path
 
     # -- the loop -----------------------------------------------------------------------------------
