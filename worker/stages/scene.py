@@ -175,8 +175,8 @@ def upright_rotation(up: np.ndarray, toward: np.ndarray) -> np.ndarray:
 
 def floor_height(heights: np.ndarray, spread: np.ndarray, band: float, min_points: int) -> float | None:
     """The floor under the object: a dense level of sparse points below the centre that spreads wider than
-    the object does. ``heights``: the near points' heights above the centre (upright), ``spread``: their
-    horizontal distance from it, ``band``: half the floor level's thickness. None when there is no such level.
+    the object does. ``heights``: the heights above the centre (upright) of the points in the column under
+    and around the object, ``spread``: their horizontal distance from it, ``band``: half the floor level's thickness. None when there is no such level.
     """
     below = heights < -band
     if below.sum() < min_points:
