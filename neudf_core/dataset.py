@@ -33,7 +33,6 @@ class Dataset:
     intrinsics: Tensor  # (N, 3, 3) in pixels of ``images``
     c2w: Tensor  # (N, 4, 4), OpenCV camera to unit-sphere world
     names: list[str]
-    floor_y: float | None = None
     object_pixels: Tensor | None = None  # flat (image, y, x) indices of the pixels whose rays meet the unit sphere
 
     @property
@@ -52,7 +51,7 @@ class Dataset:
         masks = self.masks.to(device) if self.masks is not None else None
         pixels = self.object_pixels.to(device) if self.object_pixels is not None else None
         return Dataset(self.images.to(device), masks, self.intrinsics.to(device), self.c2w.to(device), self.names,
-                       self.floor_y, pixels)
+                       pixels)
 
     def rays(self, image_idx: Tensor, pixel_y: Tensor, pixel_x: Tensor) -> tuple[Tensor, Tensor]:
         """World-space origins and unit directions through pixel centres."""
@@ -251,5 +250,4 @@ def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False, s
         intrinsics=as_t(Ks),
         c2w=as_t(c2ws),
         names=[p.name for p in image_paths],
-        floor_y=read_floor(root),
     )
