@@ -43,7 +43,7 @@ __all__ = ["JobOptions", "STAGES", "STAGE_NAMES", "run_pipeline", "artifact_file
 
 
 # Sized so a 10 s phone video finishes end to end within about 20 minutes on a 2-core CPU.
-DEFAULT_TRAIN_MINUTES = 10.0
+DEFAULT_TRAIN_MINUTES = 9.0
 
 
 class JobOptions(BaseModel):
