@@ -32,8 +32,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from neudf_core import synthetic  # noqa: E402
-from worker.capture import load_dataset_cameras, pose_errors, run_capture  # noqa: E402
-from worker.stages.poses import PoseOptions  # noqa: E402
+from neudf_core.files import atomic_write  # noqa: E402
+from worker.capture.evaluate import load_dataset_cameras, pose_errors  # noqa: E402
+from worker.capture.poses import PoseOptions  # noqa: E402
+from worker.capture.run import run_capture  # noqa: E402
 
 DEFAULT_MESH = ROOT.parent / "shared" / "data" / "meshes" / "tshirt.obj"
 RESULTS = ROOT / "bench" / "results"
@@ -53,7 +55,7 @@ def render_video(path: Path, mesh_path: Path, n: int, width: int, height: int, f
     """Render and encode the walk-around (streamed in chunks to bound memory); returns the true c2w (N, 4, 4)."""
     import av
 
-    from tests.test_capture import backdrop_sphere, render_scene
+    from tests.builders import backdrop_sphere, render_scene
 
     garment = load_garment(mesh_path)
     # The backdrop's texture grows with the frame so its blobs stay a few to a few tens of pixels wide.
@@ -61,9 +63,8 @@ def render_video(path: Path, mesh_path: Path, n: int, width: int, height: int, f
     backdrop = backdrop_sphere(texture_size=(1024 * scale, 512 * scale), n_blobs=3000 * scale * scale,
                                blob_px=(3, 16))
     cameras = synthetic.orbit_cameras(n, ORBIT_RADIUS, width=width, height=height, fov_deg=fov_deg)
-    tmp = path.with_name(path.stem + ".partial.mp4")
     t0 = time.perf_counter()
-    with av.open(str(tmp), mode="w", format="mp4") as container:
+    with atomic_write(path) as tmp, av.open(str(tmp), mode="w", format="mp4") as container:
         stream = container.add_stream("libx264", rate=Fraction(30))
         stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
         stream.options = {"crf": "18", "preset": "medium"}  # about what a phone's encoder leaves
@@ -76,7 +77,6 @@ def render_video(path: Path, mesh_path: Path, n: int, width: int, height: int, f
             print(f"  rendered {done}/{n} frames, {elapsed:.0f} s, eta {elapsed / done * (n - done):.0f} s", flush=True)
         for packet in stream.encode():
             container.mux(packet)
-    os.replace(tmp, path)
     return np.stack([c.c2w for c in cameras])
 
 

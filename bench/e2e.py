@@ -38,7 +38,9 @@ sys.path.insert(0, str(ROOT))
 from bench.capture import printer  # noqa: E402
 from neudf_core import synthetic  # noqa: E402
 from neudf_core.metrics import evaluate, load_mesh  # noqa: E402
-from worker.capture import align_cameras, load_dataset_cameras, pose_errors  # noqa: E402
+from neudf_core.device import resolve_device  # noqa: E402
+from neudf_core.files import atomic_write  # noqa: E402
+from worker.capture.evaluate import align_cameras, load_dataset_cameras, pose_errors  # noqa: E402
 from worker.pipeline import JobOptions, run_pipeline  # noqa: E402
 
 MESH_DIR = ROOT.parent / "shared" / "data" / "meshes"
@@ -73,9 +75,8 @@ def render_video(path: Path, garment, seed: int, chunk: int = 8) -> np.ndarray:
 
     room = synthetic.room_scene(garment, seed=seed)
     cameras = synthetic.handheld_orbit(FPS * SECONDS, width=WIDTH, height=HEIGHT, seed=seed)
-    tmp = path.with_name(path.stem + ".partial.mp4")
     t0 = time.perf_counter()
-    with av.open(str(tmp), mode="w", format="mp4") as container:
+    with atomic_write(path) as tmp, av.open(str(tmp), mode="w", format="mp4") as container:
         stream = container.add_stream("libx264", rate=Fraction(FPS))
         stream.width, stream.height, stream.pix_fmt = WIDTH, HEIGHT, "yuv420p"
         stream.options = {"crf": "20", "preset": "medium"}  # about what a phone's encoder leaves
@@ -88,7 +89,6 @@ def render_video(path: Path, garment, seed: int, chunk: int = 8) -> np.ndarray:
             print(f"  rendered {done}/{len(cameras)} frames, {time.perf_counter() - t0:.0f} s", flush=True)
         for packet in stream.encode():
             container.mux(packet)
-    os.replace(tmp, path)
     return np.stack([c.c2w for c in cameras])
 
 
@@ -145,10 +145,11 @@ def picture(path: Path, gt, pred, size: int = 320) -> None:
 def run_garment(mesh_path: Path, args: argparse.Namespace, device: str) -> dict[str, Any]:
     name = mesh_path.stem
     video, true_c2w = cached_video(args.work, mesh_path, args.seed)
-    job = args.work / "jobs" / f"{name}_{args.weight}"
-    if args.weight != "neudf":
+    job = args.work / "jobs" / "_".join([name, args.weight] + ([args.preset] if args.preset else []))
+    if job.name != f"{name}_neudf":
         reuse_capture(args.work / "jobs" / f"{name}_neudf", job)
-    options = JobOptions(weight=args.weight, **({"minutes": args.minutes} if args.minutes is not None else {}))
+    chosen = {k: v for k, v in (("minutes", args.minutes), ("preset", args.preset)) if v is not None}
+    options = JobOptions(weight=args.weight, **chosen)
     t0 = time.perf_counter()
     metrics = run_pipeline(video, job, options, printer(name, every_s=30), device=device)
     wall = time.perf_counter() - t0
@@ -157,9 +158,10 @@ def run_garment(mesh_path: Path, args: argparse.Namespace, device: str) -> dict[
     gt = load_garment(mesh_path)
     pred, cameras = aligned_mesh(job, true_c2w)
     figures = evaluate(pred, gt)
-    picture(PICTURES / f"e2e_{name}_{args.weight}.png", gt, pred)
+    picture(PICTURES / f"e2e_{job.name}.png", gt, pred)
     return {
-        "mesh": name, "weight": args.weight, "device": device, "options": options.model_dump(exclude_none=True),
+        "mesh": name, "weight": args.weight, "device": device,
+        "train_device": stages["train"]["metrics"].get("device", device), "options": options.model_dump(exclude_none=True),
         "chamfer": figures["chamfer"], "fscore": figures["fscore"],
         "boundary_loops_pred": figures["boundary_loops_pred"], "boundary_loops_gt": figures["boundary_loops_gt"],
         "faces": int(len(pred.faces)),
@@ -195,6 +197,7 @@ def main() -> None:
     parser.add_argument("--meshes", nargs="*", help="Garment names (default: every mesh in ../shared/data/meshes).")
     parser.add_argument("--weight", default="neudf", choices=["neudf", "neus_sdf", "neus_abs"])
     parser.add_argument("--minutes", type=float, help="Training budget (default: the job default).")
+    parser.add_argument("--preset", help="Training preset (default: the device's).")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--seed", type=int, default=0, help="Seed of the room and the camera path.")
     parser.add_argument("--work", type=Path, default=Path("/tmp/neudf-bench-e2e"), help="Videos and job folders.")
@@ -202,9 +205,7 @@ def main() -> None:
     parser.add_argument("--render-only", action="store_true", help="Render and cache the videos, then stop.")
     args = parser.parse_args()
 
-    import torch
-
-    device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device
+    device = resolve_device(args.device)
     meshes = garments(args.meshes)
     if args.render_only:
         for path in meshes:

@@ -47,7 +47,7 @@ sys.path.insert(0, str(ROOT))
 
 from neudf_core import synthetic  # noqa: E402
 from neudf_core.config import deep_merge, load_config  # noqa: E402
-from neudf_core.meshing import mesh_run  # noqa: E402
+from neudf_core.extract import mesh_run  # noqa: E402
 from neudf_core.metrics import boundary_loops, evaluate  # noqa: E402
 from neudf_core.numerics import flush_denormals  # noqa: E402
 from neudf_core.trainer import fit_schedule_to_iters, train  # noqa: E402

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from neudf_core import synthetic  # noqa: E402
-from neudf_core.meshing import mesh_run  # noqa: E402
+from neudf_core.extract import mesh_run  # noqa: E402
 from neudf_core.metrics import evaluate  # noqa: E402
 from neudf_core.trainer import train  # noqa: E402
 

@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 from quality import find_meshes  # noqa: E402  (bench/ is on the path when run as a script)
 
 from neudf_core import synthetic  # noqa: E402
-from neudf_core.meshing import mesh_run  # noqa: E402
+from neudf_core.extract import mesh_run  # noqa: E402
 from neudf_core.metrics import evaluate  # noqa: E402
 from neudf_core.trainer import train  # noqa: E402
 

@@ -1,8 +1,9 @@
-"""Command-line commands of the core: ``neudf train``, ``neudf mesh``, ``neudf eval``.
+"""Command-line commands of the core: ``neudf train``, ``neudf mesh``, ``neudf eval``; and what every layer's
+commands share: :func:`fail` (a one-line reason on stderr, a non-zero exit code) and :func:`progress_bar`.
 
-The entry point (service/cli.py) builds one typer app from this module's :func:`register` and those of
-the worker and service layers. Every command turns bad input into a one-line reason on stderr and a
-non-zero exit code, never a traceback.
+The ``neudf`` entry point (web/cli.py, through service/cli.py) builds one typer app from this module's
+:func:`register` and those of the worker and service layers. Every command turns bad input into a one-line
+reason on stderr and a non-zero exit code, never a traceback.
 """
 
 from __future__ import annotations
@@ -11,13 +12,25 @@ import contextlib
 import json
 import sys
 from collections.abc import Iterator
+from datetime import timedelta
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, NoReturn
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.markup import escape
+from rich.progress import (
+    BarColumn,
+    Progress,
+    ProgressColumn,
+    Task,
+    TaskProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.text import Text
 
 from neudf_core.progress import ProgressFn
 
@@ -35,24 +48,54 @@ class MeshMethod(str, Enum):
     mc = "mc"
 
 
-def fail(message: str, code: int = 2) -> None:
-    """Print a one-line reason to stderr and exit non-zero."""
-    err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+def fail(message: str, code: int = 2) -> NoReturn:
+    """Print ``error: <message>`` as one line on stderr and exit with ``code`` (2: bad input)."""
+    err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
+
+
+# Report fields that steer the bar (or are too big for it) rather than describe the work.
+_NOT_FIGURES = frozenset({"stage", "stage_progress", "event", "eta_s", "job_eta_s", "metrics", "seconds", "skipped"})
+
+
+class _TimeLeft(ProgressColumn):
+    """The work's own estimate of the time left when it reports one (``job_eta_s``, else ``eta_s``), else rich's."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._extrapolated = TimeRemainingColumn()
+
+    def render(self, task: Task) -> Text:
+        eta = task.fields.get("eta")
+        if eta is None:
+            return self._extrapolated.render(task)
+        return Text(str(timedelta(seconds=max(int(eta), 0))), style="progress.remaining")
 
 
 @contextlib.contextmanager
 def progress_bar(description: str) -> Iterator[ProgressFn]:
-    """A rich progress bar driven by a :class:`ProgressFn`; the message and figures show beside it."""
-    columns = (TextColumn("[bold]{task.description}"), BarColumn(), TaskProgressColumn(),
-               TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
+    """The one progress bar of the ``neudf`` commands, on stderr, driven by a :class:`ProgressFn`.
+
+    Shows the stage being worked on (the report's ``stage``, else ``description``), the fraction done, the
+    time spent and the time left (the work's own estimate when it gives one), and the message with the
+    report's figures (loss, psnr, ...). Planning reports (``event="plan"``) move nothing.
+    """
+    columns = (TextColumn("[bold]{task.fields[stage]:<8}"), BarColumn(), TaskProgressColumn(), TimeElapsedColumn(),
+               _TimeLeft(), TextColumn("{task.fields[info]}"))
     with Progress(*columns, console=err_console, transient=False) as bar:
-        task = bar.add_task(description, total=1.0, info="")
+        task = bar.add_task(description, total=1.0, stage=description, eta=None, info="")
 
         def report(fraction: float, message: str = "", **info: Any) -> None:
+            if info.get("event") == "plan":
+                return
+            stage = info.get("stage") or description
+            if message.startswith(f"{stage}: "):  # the stage column names it already
+                message = message[len(stage) + 2:]
             figures = " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                               for k, v in info.items() if k not in ("eta_s",))
-            bar.update(task, completed=min(max(fraction, 0.0), 1.0), info=f"{message} {figures}".strip())
+                               for k, v in info.items() if k not in _NOT_FIGURES)
+            eta = info.get("job_eta_s", info.get("eta_s"))
+            bar.update(task, completed=min(max(fraction, 0.0), 1.0), stage=stage, eta=eta,
+                       info=escape(f"{message} {figures}".strip()[:80]))
 
         yield report
 
@@ -107,7 +150,7 @@ def mesh_command(
     device: Annotated[Device, typer.Option(help="cpu or cuda")] = Device.cpu,
 ) -> None:
     """Extract the open mesh with vertex colours from a trained run."""
-    from neudf_core.meshing import mesh_run
+    from neudf_core.extract import mesh_run
 
     if resolution < 16 or resolution > 2048:
         fail(f"--resolution must be between 16 and 2048, got {resolution}")
@@ -142,7 +185,7 @@ def register(app: typer.Typer) -> None:
     app.command("eval")(eval_command)
 
 
-def main() -> None:  # pragma: no cover - the installed entry point is service.cli:main
+def main() -> None:  # pragma: no cover - the installed entry point is web.cli:main
     app = typer.Typer(add_completion=False, no_args_is_help=True)
     register(app)
     app(prog_name="neudf")

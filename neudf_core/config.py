@@ -30,12 +30,10 @@ class FieldConfig(_Block):
     n_freqs: int = 6
     d_feature: int = 256
     init_radius: float | None = Field(
-        None, description="geometric init: None = the UDF of a point (unsigned) or a sphere of radius 0.5 (signed)")
+        None, description="geometric init radius; None: a point (unsigned) or a sphere of radius 0.5 (signed)")
     use_weight_norm: bool = True
     output: Literal["softplus", "abs"] = Field(
-        "softplus", description="how the unsigned field's last layer becomes Psi >= 0: the paper's Softplus "
-        "(beta=100) or |h| (not in the paper: Psi crosses 0 on a wall with unit slope, where the Softplus rounds "
-        "the cusp off above 0 and the field digs a valley behind the wall to turn it opaque)")
+        "softplus", description="Psi >= 0 from the last layer's h: Softplus(beta=100) (the paper) or |h| (sharp cusp)")
     encoding: Literal["frequency", "hashgrid"] = "frequency"
     hash_levels: int = 16
     hash_features: int = 2
@@ -43,8 +41,8 @@ class FieldConfig(_Block):
     hash_base_res: int = 16
     hash_max_res: int = 2048
     gradient: Literal["autograd", "finite_difference"] = Field(
-        "autograd", description="grad Psi by double backward (exact) or central differences (no 2nd-order graph)")
-    fd_eps: float = Field(1e-3, description="finite-difference step; about a cell of the finest hash level")
+        "autograd", description="grad Psi by double backward (exact) or finite differences (no 2nd-order graph)")
+    fd_eps: float = Field(1e-3, description="finite-difference step, about a cell of the finest hash level")
 
 
 class ColorConfig(_Block):
@@ -54,14 +52,12 @@ class ColorConfig(_Block):
     n_layers: int = 4
     n_freqs_view: int = 4
     view_dependent: bool = Field(
-        True, description="feed the view direction to the colour network (the paper); false: the colour of a "
-        "point is the same from every side, which keeps lids off openings the cameras look through")
+        True, description="feed the view direction to the colour network (the paper); false keeps lids off openings")
 
 
 class BackgroundConfig(_Block):
-    """NeRF++ outside the unit sphere; disabled when masks are used or the background is a known colour."""
+    """NeRF++ outside the unit sphere; none when masks are used or the background is a known colour."""
 
-    enabled: bool = True
     d_hidden: int = 256
     n_layers: int = 8
     n_freqs: int = 10
@@ -73,25 +69,14 @@ class RendererConfig(_Block):
 
     weight: WeightMode = "neudf"
     varsigma: VarsigmaKind = Field(
-        "rational", description="the CDF of the U-density: rational r d / (1 + r d) (the paper), exp 1 - e^{-r d} "
-        "or atan (the paper's ablation). A ray that passes a surface at d is 1 - varsigma(d)^2 opaque, "
-        "about 2/(r d) for rational: a halo around silhouettes that the field answers by shrinking behind the "
-        "surface the images show; exp's halo falls as 2 e^{-r d}")
+        "rational", description="CDF of the U-density: rational (the paper), exp (a shorter halo) or atan")
     sharpness_init: float = Field(0.05, description="r for NeUDF (paper: 0.05), s for the NeuS baselines")
     sharpness_floor_end: float = Field(
-        0.0, description="not in the paper (0 = off; NeUDF weight only): a lower bound on r that rises "
-        "geometrically from sharpness_init at the first iteration to this value at the last. NeUDF's weight "
-        "lies on the near side of a surface only, about 1/r deep, and the rational varsigma's tail leaves a "
-        "halo about 2/(r d) opaque at distance d from a silhouette; the paper's 400k iterations let r grow "
-        "past both, short budgets stop near r = 50")
+        0.0, description="not in the paper (0 = off, NeUDF only): floor on r, geometric from sharpness_init to this")
     section: SectionMode = "midpoint_gradient"
     receding_opacity: bool = Field(
-        True, description="NeUDF weight: sections where Psi rises (the ray leaving a surface it did not cross) "
-        "absorb light too, as the paper's alpha = (max - min) / max does; false (not in the paper) keeps only "
-        "falling sections and those that hold a zero, which halves the silhouette halo. Needs "
-        "section midpoint_gradient: between two samples a crossing looks like a fall and a rise")
+        True, description="NeUDF: sections where Psi rises absorb too (the paper); false halves the silhouette halo")
     cos_anneal_iters: int = 10_000
-    normal_reg_k: int = Field(5, description="K previous samples for the regularised normal; 0 = raw gradient")
 
     @model_validator(mode="after")
     def _receding_needs_gradient_sections(self) -> "RendererConfig":
@@ -108,21 +93,15 @@ class SamplerConfig(_Block):
     n_importance: int = 64
     n_rounds: int = 2
     s0: float = Field(64.0, description="zeta_s sharpness of the first round (doubles each round)")
-    importance_start_iter: int = 0
 
 
 class LossConfig(_Block):
     eikonal_weight: float = 0.1
-    eikonal_min_udf: float = Field(0.0, description="skip eikonal samples with Psi below this (FD gradients "
-                                   "collapse on the cusp)")
+    eikonal_min_udf: float = Field(0.0, description="skip eikonal samples with Psi below this (the cusp)")
     mask_weight: float = 0.0
-    normal_smooth_weight: float = Field(0.0, description="authors' code: sign-agnostic consecutive-normal term")
     zero_region_weight: float = Field(
-        0.0, description="not in the paper (0 = off): penalise h, Psi's value before the output activation, "
-        "below -zero_region_margin, so the field cannot sit at Psi ~ 0 over a volume where the eikonal term has "
-        "no gradient left (seen on the unseen inner side of garments)")
-    zero_region_margin: float = Field(0.03, description="depth of h (before the output activation) below which "
-                                      "zero_region_weight acts")
+        0.0, description="not in the paper (0 = off): penalise h below -zero_region_margin (Psi ~ 0 over a volume)")
+    zero_region_margin: float = Field(0.03, description="depth of h (before the output activation) where it acts")
 
 
 class OptimConfig(_Block):
@@ -134,16 +113,13 @@ class OptimConfig(_Block):
     iters: int = 400_000
     rays: int = 512
     images_per_batch: int = 8
-    object_rays: float = Field(0.0, ge=0, le=1, description="share of each batch's rays drawn from pixels whose "
-                               "rays meet the unit sphere (the rest uniformly): 0 is the paper's uniform draw")
+    object_rays: float = Field(0.0, ge=0, le=1, description="share of rays drawn where they meet the unit sphere")
 
 
 class DataConfig(_Block):
     max_size: int = Field(0, description="downscale images to this longest side for training (0 = keep)")
-    sphere_px: int = Field(0, ge=0, description="downscale images so the unit sphere is about this many pixels "
-                           "across (0 = keep): the object's extent, not the frame's, sets the resolution")
-    floor_y: float | None = Field(None, description="height (unit sphere, y up) below which nothing is object; "
-                                  "taken from the dataset's region.json, not set by hand")
+    sphere_px: int = Field(0, ge=0, description="downscale images to about this many pixels across the unit sphere")
+    floor_y: float | None = Field(None, description="height (y up) below which nothing is object, from region.json")
     use_masks: bool = False
     white_background: bool = False
 
@@ -167,6 +143,28 @@ class TrainConfig(_Block):
     optim: OptimConfig = OptimConfig()
     data: DataConfig = DataConfig()
     log: LogConfig = LogConfig()
+
+
+# Options that are gone, with the value the code now always uses: a run's config.json written before
+# holds them; at that value they are dropped on loading, any other value is refused as an unknown key.
+RETIRED = {
+    "background": {"enabled": True},
+    "renderer": {"normal_reg_k": 5},
+    "sampler": {"importance_start_iter": 0},
+    "loss": {"normal_smooth_weight": 0.0},
+}
+
+
+def load_saved_config(text: str) -> TrainConfig:
+    """The configuration a run folder's config.json holds (the text), also one written before an option retired."""
+    data = json.loads(text)
+    for block, retired in RETIRED.items():
+        section = data.get(block)
+        if isinstance(section, dict):
+            for key, value in retired.items():
+                if key in section and section[key] == value:
+                    del section[key]
+    return TrainConfig.model_validate(data)
 
 
 def available_presets() -> list[str]:

@@ -99,9 +99,7 @@ class UDFNetwork(nn.Module):
         n_freqs: int = 6,
         d_feature: int = 256,
         init_radius: float = 0.5,
-        geometric_init: bool = True,
         use_weight_norm: bool = True,
-        softplus_beta: float = 100.0,
         signed: bool = False,
         encoding: nn.Module | None = None,
         output: Literal["softplus", "abs"] = "softplus",
@@ -118,11 +116,10 @@ class UDFNetwork(nn.Module):
         for i in range(len(dims) - 1):
             out_dim = dims[i + 1] - d_in if (i + 1) in self.skip_in else dims[i + 1]
             layer = nn.Linear(dims[i], out_dim)
-            if geometric_init:
-                self._geometric_init(layer, i, len(dims) - 2, d_in, out_dim, init_radius)
+            self._geometric_init(layer, i, len(dims) - 2, d_in, out_dim, init_radius)
             layers.append(_weight_norm(layer) if use_weight_norm else layer)
         self.layers = nn.ModuleList(layers)
-        self.activation = nn.Softplus(beta=softplus_beta)
+        self.activation = nn.Softplus(beta=100.0)
 
     def _geometric_init(self, layer: nn.Linear, i: int, last: int, d_in: int, out_dim: int, radius: float) -> None:
         """IDR / SAL geometric initialisation: the network starts as the SDF of a sphere."""
@@ -236,5 +233,3 @@ class Sharpness(nn.Module):
     def forward(self) -> Tensor:
         return torch.exp(10.0 * self.v)
 
-
-Mode = Literal["neudf", "neus_abs", "neus_sdf"]

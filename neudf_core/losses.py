@@ -1,4 +1,4 @@
-"""Loss terms (paper Sec. 3.4: L = L_c + alpha L_e + beta L_m) and the authors' optional normal term."""
+"""Loss terms (paper Sec. 3.4: L = L_c + alpha L_e + beta L_m) and the zero-region penalty."""
 
 from __future__ import annotations
 
@@ -21,14 +21,6 @@ def eikonal(gradients: Tensor, valid: Tensor) -> Tensor:
 def mask_bce(weight_sum: Tensor, mask: Tensor) -> Tensor:
     """L_m: binary cross-entropy between accumulated opacity and the object mask."""
     return F.binary_cross_entropy(weight_sum.clamp(1e-3, 1.0 - 1e-3), mask)
-
-
-def normal_smoothness(gradients: Tensor, valid: Tensor) -> Tensor:
-    """The released code's extra term: consecutive normals on a ray agree up to sign."""
-    n = F.normalize(gradients, dim=-1)
-    diff = torch.minimum((n[:, 1:] - n[:, :-1]).abs().sum(-1), (n[:, 1:] + n[:, :-1]).abs().sum(-1))
-    v = valid[:, 1:] * valid[:, :-1]
-    return (diff * v).sum() / v.sum().clamp_min(1.0)
 
 
 def zero_region(raw: Tensor, valid: Tensor, margin: float) -> Tensor:

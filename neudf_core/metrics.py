@@ -1,4 +1,4 @@
-"""Mesh quality against a ground truth, in the paper's convention (see ../shared/CONTRACT.md, `neudf eval`).
+"""Mesh quality against a ground truth, in the paper's convention (`neudf eval`).
 
 Both meshes are moved by the transform that puts GT in the unit sphere (centre = midpoint of GT's
 axis-aligned bounding box, scale = 1 / the largest distance of a GT vertex from that centre). Each mesh is
@@ -156,7 +156,7 @@ def evaluate(
 ) -> dict:
     """Chamfer, F-score, normal consistency and boundary loops of ``pred`` against ``gt``.
 
-    Keys (CONTRACT.md): ``chamfer`` (mean of the two directed mean distances, GT unit sphere),
+    Keys: ``chamfer`` (mean of the two directed mean distances, GT unit sphere),
     ``fscore`` (at ``fscore_threshold``, same units), ``normal_consistency`` (mean |cos| between a
     sample's normal and the nearest triangle's on the other mesh, both ways; sign-agnostic since an open
     surface has no inside), ``boundary_loops_pred``, ``boundary_loops_gt``; plus the directed terms,

@@ -20,7 +20,6 @@ class RenderState:
 
     cos_anneal: float = 1.0
     perturb: bool = False
-    importance: bool = True
     with_grad: bool = False  # keep the graph through gradients (the eikonal term needs it)
     sharpness_floor: float = 0.0  # lower bound on r at this step (see trainer.sharpness_floor); 0 = none
 
@@ -46,7 +45,7 @@ class NeUDFModel(nn.Module):
         self.sharpness = Sharpness(cfg.renderer.sharpness_init)
 
     def _use_background(self) -> bool:
-        return self.cfg.background.enabled and not self.cfg.data.use_masks and not self.cfg.data.white_background
+        return not self.cfg.data.use_masks and not self.cfg.data.white_background
 
     # -- the field as a function of space: the entry points meshing and evaluation use --------------
     def udf(self, x: Tensor) -> Tensor:
@@ -92,10 +91,9 @@ class NeUDFModel(nn.Module):
         cfg_s, cfg_r = self.cfg.sampler, self.cfg.renderer
         near, far = near_far_from_sphere(rays_o, rays_d)
         z = stratified(near, far, cfg_s.n_coarse, state.perturb)
-        if state.importance:
-            # The zeta_s sampler reads the unsigned distance, so the SDF baseline samples around |f| = 0.
-            z = hierarchical_samples(rays_o, rays_d, z, lambda p: self.udf(p).abs(), cfg_s.n_importance,
-                                     cfg_s.n_rounds, cfg_s.s0, deterministic=not state.perturb)
+        # The zeta_s sampler reads the unsigned distance, so the SDF baseline samples around |f| = 0.
+        z = hierarchical_samples(rays_o, rays_d, z, lambda p: self.udf(p).abs(), cfg_s.n_importance,
+                                 cfg_s.n_rounds, cfg_s.s0, deterministic=not state.perturb)
         # Sections between consecutive depths; the last one gets the coarse spacing, as in NeuS.
         dists = torch.cat([z[:, 1:] - z[:, :-1], ((far - near) / cfg_s.n_coarse)[:, None]], -1)
         mid_z = z + 0.5 * dists
@@ -127,7 +125,7 @@ class NeUDFModel(nn.Module):
             alpha = alpha * inside  # beyond the sphere the background model owns the ray
         weights, transmittance = weights_from_alpha(alpha)
 
-        normals = regularised_normals(points, grad, cfg_r.normal_reg_k)
+        normals = regularised_normals(points, grad)
         view_dirs = rays_d[:, None].expand(-1, n_samples, -1).reshape(-1, 3)
         rgb = self.color_net(flat, view_dirs, normals.reshape(-1, 3), feature).reshape(n_rays, n_samples, 3)
         color = composite(weights, rgb)

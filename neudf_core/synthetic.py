@@ -1,4 +1,4 @@
-"""Synthetic scenes: render a mesh from known cameras into the NeuS layout or into a video.
+"""Synthetic scenes: render a mesh from known cameras, as images or as a dataset in the NeuS layout.
 
 Tests and benchmarks need images whose cameras and surface are known exactly. We ray-cast the mesh
 with trimesh's Embree intersector (a real ray caster, not our own), colour the hits from the mesh's
@@ -415,37 +415,3 @@ def write_neus_dataset(
     info = {"views": n_views, "size": size, "background": background, "radius": radius, "fov_deg": fov_deg}
     (out / "scene.json").write_text(json.dumps(info, indent=2))
     return out
-
-
-def write_orbit_video(
-    path: str | Path,
-    mesh: trimesh.Trimesh,
-    n_frames: int = 48,
-    width: int = 320,
-    height: int = 240,
-    fps: int = 24,
-    background: Background = "env",
-    radius: float = 3.0,
-    fov_deg: float = 45.0,
-    seed: int = 0,
-) -> list[Camera]:
-    """Render a walk-around of ``mesh`` (scaled into the unit sphere) and encode it as H.264 MP4.
-
-    Returns the true cameras, in the unit-sphere frame of the mesh, one per encoded frame.
-    """
-    import av  # PyAV: only this function needs it
-
-    unit_mesh = mesh.copy()
-    unit_mesh.apply_transform(np.linalg.inv(unit_sphere_transform(mesh)))
-    cameras = orbit_cameras(n_frames, radius, width=width, height=height, fov_deg=fov_deg)
-    images, _ = render(unit_mesh, cameras, background, seed)
-    with av.open(str(path), mode="w") as container:
-        stream = container.add_stream("libx264", rate=fps)
-        stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
-        stream.options = {"crf": "16", "preset": "veryfast"}
-        for image in images:
-            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
-    return cameras

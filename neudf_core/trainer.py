@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -19,8 +18,9 @@ import torch
 from PIL import Image
 
 from neudf_core import losses
-from neudf_core.config import RendererConfig, TrainConfig, default_preset, load_config
+from neudf_core.config import RendererConfig, TrainConfig, default_preset, load_config, load_saved_config
 from neudf_core.dataset import Dataset, load_dataset, read_floor
+from neudf_core.files import atomic_write
 from neudf_core.model import NeUDFModel, RenderState
 from neudf_core.numerics import flush_denormals
 from neudf_core.progress import ProgressFn, null_progress
@@ -31,7 +31,7 @@ KEEP_CHECKPOINTS = 2
 # A run with a time budget and no iteration count stops on time alone.
 BUDGET_MAX_ITERS = 1_000_000
 # What may change when a run is resumed with another --iters: the schedule, not the model.
-_SCHEDULE_FIELDS = {"optim": True, "log": True, "renderer": {"cos_anneal_iters"}, "sampler": {"importance_start_iter"}}
+_SCHEDULE_FIELDS = {"optim": True, "log": True, "renderer": {"cos_anneal_iters"}}
 
 
 class RunError(ValueError):
@@ -68,8 +68,8 @@ def sharpness_floor(step: int, cfg_renderer: RendererConfig, total: int) -> floa
 
 
 def fit_schedule_to_iters(cfg: TrainConfig, iters: int | None) -> TrainConfig:
-    """Set the iteration count; when it is shorter than the preset's, warm-up, annealing and the start of
-    importance sampling shrink in proportion, so a short run still runs the whole schedule."""
+    """Set the iteration count; when it is shorter than the preset's, warm-up and annealing shrink in
+    proportion, so a short run still runs the whole schedule."""
     if iters is None or iters == cfg.optim.iters:
         return cfg
     if iters <= 0:
@@ -79,7 +79,6 @@ def fit_schedule_to_iters(cfg: TrainConfig, iters: int | None) -> TrainConfig:
     data["optim"]["iters"] = iters
     data["optim"]["warmup_iters"] = int(cfg.optim.warmup_iters * ratio)
     data["renderer"]["cos_anneal_iters"] = int(cfg.renderer.cos_anneal_iters * ratio)
-    data["sampler"]["importance_start_iter"] = int(cfg.sampler.importance_start_iter * ratio)
     for key in ("val_every", "ckpt_every"):
         data["log"][key] = max(1, min(data["log"][key], iters))
     return TrainConfig.model_validate(data)
@@ -99,7 +98,7 @@ def load_model(run_dir: str | Path, device: str = "cpu") -> NeUDFModel:
     ckpts = _checkpoints(run_dir)
     if not ckpts:
         raise RunError(f"{run_dir} has no checkpoint yet (checkpoints/ckpt_*.pt)")
-    cfg = TrainConfig.model_validate_json(cfg_file.read_text())
+    cfg = load_saved_config(cfg_file.read_text())
     model = NeUDFModel(cfg).to(device)
     state = torch.load(ckpts[-1], map_location=device, weights_only=False)
     model.load_state_dict(state["model"])
@@ -135,11 +134,10 @@ class Trainer:
         folder = self.run_dir / "checkpoints"
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / f"ckpt_{self.step:07d}.pt"
-        tmp = path.with_suffix(".tmp")
-        torch.save({"iter": self.step, "model": self.model.state_dict(),
-                    "optimizer": self.optimizer.state_dict(), "rng": self.generator.get_state(),
-                    "elapsed_s": self.elapsed_s}, tmp)
-        tmp.replace(path)  # a reader never sees half a checkpoint
+        with atomic_write(path, tmp=path.with_suffix(".tmp")) as tmp:  # readers glob *.pt: never half a one
+            torch.save({"iter": self.step, "model": self.model.state_dict(),
+                        "optimizer": self.optimizer.state_dict(), "rng": self.generator.get_state(),
+                        "elapsed_s": self.elapsed_s}, tmp)
         for old in _checkpoints(self.run_dir)[:-KEEP_CHECKPOINTS]:
             old.unlink(missing_ok=True)
         return path
@@ -163,7 +161,6 @@ class Trainer:
         return RenderState(
             cos_anneal=cos_anneal_ratio(self.step, cfg.renderer.cos_anneal_iters) if training else 1.0,
             perturb=training,
-            importance=self.step >= cfg.sampler.importance_start_iter,
             with_grad=training,
             sharpness_floor=sharpness_floor(self.step, cfg.renderer, self.total),
         )
@@ -190,8 +187,6 @@ class Trainer:
         if cfg.loss.zero_region_weight > 0 and not self.model.signed:
             loss = loss + cfg.loss.zero_region_weight * losses.zero_region(
                 out["raw"], out["inside"], cfg.loss.zero_region_margin)
-        if cfg.loss.normal_smooth_weight > 0:
-            loss = loss + cfg.loss.normal_smooth_weight * losses.normal_smoothness(out["gradients"], out["inside"])
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
@@ -228,9 +223,9 @@ class Trainer:
         folder = self.run_dir / "validation"
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / f"{self.step:07d}.png"
-        tmp = folder / f".{self.step:07d}.tmp"  # the service serves the newest *.png: never a half-written one
-        Image.fromarray((panel * 255).round().astype(np.uint8)).save(tmp, format="PNG")
-        os.replace(tmp, path)
+        # the service serves the newest *.png: never a half-written one
+        with atomic_write(path, tmp=folder / f".{self.step:07d}.tmp") as tmp:
+            Image.fromarray((panel * 255).round().astype(np.uint8)).save(tmp, format="PNG")
         return path
 
     # -- the loop -----------------------------------------------------------------------------------
@@ -332,7 +327,7 @@ def train(
         cfg = cfg.model_copy(update={"data": cfg.data.model_copy(update={"floor_y": floor})})
     cfg_file = run_dir / "config.json"
     if cfg_file.is_file() and _checkpoints(run_dir):
-        stored = TrainConfig.model_validate_json(cfg_file.read_text())
+        stored = load_saved_config(cfg_file.read_text())
         if stored.model_dump(exclude=_SCHEDULE_FIELDS) != cfg.model_dump(exclude=_SCHEDULE_FIELDS):
             raise RunError(f"{run_dir} holds a run with another configuration (preset {stored.preset!r}); "
                            "pick a new --out folder or the same options to resume it")
@@ -344,7 +339,7 @@ def train(
     trainer = Trainer(data, run_dir, cfg, device)
     trainer.resume()
     result = trainer.fit(progress, budget_s=minutes * 60 if minutes is not None else None)
-    result.update(preset=cfg.preset, images=data.n_images, image_size=[data.width, data.height])
+    result.update(preset=cfg.preset, device=device, images=data.n_images, image_size=[data.width, data.height])
     if minutes is not None:
         result["minutes"] = minutes
     return result

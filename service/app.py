@@ -1,8 +1,9 @@
-"""The FastAPI application: REST API under /api, OpenAPI at /docs, the web page at /.
+"""The FastAPI application: REST API under /api, OpenAPI at /docs.
 
 ``create_app(settings)`` builds everything from the settings it is given (or ``get_settings()``): the job
-service, the token checks, the routes, the page and, when ``settings.embedded_worker`` is set, a local
-Celery worker process that lives as long as the app.
+service (``app.state.service``), the token checks (``app.state.auth``), the routes and, when
+``settings.embedded_worker`` is set, a local Celery worker process that lives as long as the app. The web
+page at / is not the service's: `neudf serve` (web/cli.py) mounts it onto this app (``web.page.mount_page``).
 
 Every error leaves as ``{"detail": "reason"}``: a refusal with its status, a busy or unreachable job store
 as 503, invalid parameters as 422 naming the parameter, anything unexpected as 500 without its text (which
@@ -29,7 +30,7 @@ from service.settings import Settings, get_settings
 log = logging.getLogger("neudf.service")
 
 
-def create_app(settings: Settings | None = None, *, with_page: bool = True) -> FastAPI:
+def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or get_settings()
     service = JobService(settings)
     service.sweep_uploads()
@@ -62,10 +63,6 @@ def create_app(settings: Settings | None = None, *, with_page: bool = True) -> F
     app.dependency_overrides[get_settings] = lambda: settings
     add_error_handlers(app)
     app.include_router(router)
-    if with_page:
-        from web.page import mount_page
-
-        mount_page(app, service, app.state.auth)
     return app
 
 

@@ -47,7 +47,7 @@ def settings_env(settings: Settings) -> dict[str, str]:
 
 
 def worker_command() -> list[str]:
-    return [sys.executable, "-m", "service.cli", "worker"]
+    return [sys.executable, "-m", "worker.cli", "worker"]
 
 
 class EmbeddedWorker:

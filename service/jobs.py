@@ -11,6 +11,7 @@ Folders under jobs/ without a record (a process killed mid-create) are swept at 
 from __future__ import annotations
 
 import logging
+import os
 import re
 import shutil
 import time
@@ -25,12 +26,15 @@ from sqlalchemy.exc import SQLAlchemyError
 import neudf_core
 from service.models import BrokerHealth, Health, HealthPublic, JobPublic, WorkerHealth
 from service.settings import Settings
+from worker.capture.frames import VideoInfo, VideoLimits, probe_video
 from worker.celery_app import broker_reachable, create_celery, enqueue_job
 from worker.errors import StageError
-from worker.pipeline import STAGE_NAMES, JobOptions, completed_stages
-from worker.stages.frames import VideoInfo, VideoLimits, probe_video
+from worker.pipeline import STAGE_NAMES, JobOptions, artifact_files, completed_stages
 from worker.store import JobRecord, JobStore
 from worker.tasks import finished_artifacts
+
+# JobRecord is what the service hands its callers (the API, the page): they name it from here.
+__all__ = ["JobService", "JobRejected", "JobRecord", "probe_upload", "STORE_BUSY"]
 
 log = logging.getLogger("neudf.service")
 
@@ -71,7 +75,7 @@ class JobService:
         settings.root.mkdir(parents=True, exist_ok=True)
         settings.uploads_dir.mkdir(parents=True, exist_ok=True)
         self.store = JobStore(settings.resolved_database_url, busy_timeout_s=settings.db_wait_s)
-        self.celery = create_celery(settings, with_tasks=False)
+        self.celery = create_celery(settings)  # sends jobs by name: no task code in the API
 
     # -- who sees what --------------------------------------------------------------------------------
     def visible(self, job: JobRecord | None, owner: str | None) -> bool:
@@ -214,14 +218,41 @@ class JobService:
         step = (len(files) - 1) / (limit - 1)
         return [files[round(i * step)] for i in range(limit)]
 
-    def page_file(self, job_id: str, path: Path, owner: str | None) -> None:
-        """JobRejected 404 unless ``path`` (resolved) is a whole artifact or a chosen frame of the caller's job."""
+    # -- what the page shows ---------------------------------------------------------------------------
+    @property
+    def files_root(self) -> Path:
+        """The folder all jobs' files live under: the page shows files from it (each checked by ``check_page_file``)."""
+        return self.settings.jobs_dir
+
+    def check_page_file(self, requested: str, owner: str | None) -> None:
+        """JobRejected 404 for a file the page is asked for (``requested``, resolved as Gradio resolves it) that lies
+        in the jobs folder and is not a whole artifact or a chosen frame of a job the caller sees. Files elsewhere
+        are Gradio's to check."""
+        target = Path(os.path.abspath(requested)).resolve()
+        jobs = self.files_root.resolve()
+        if not target.is_relative_to(jobs) or target == jobs:
+            return
+        job_id = target.relative_to(jobs).parts[0]
         self.get(job_id, owner)
         job_dir = self.settings.job_dir(job_id)
         shown = {p.resolve() for p in finished_artifacts(job_dir).values()} | {p.resolve() for p in
                                                                              self.frames(job_id, owner, limit=10**6)}
-        if path not in shown or not path.is_file():
+        if target not in shown or not target.is_file():
             raise JobRejected(404, "no such file")
+
+    def training_log(self, job: JobRecord) -> list[dict[str, Any]]:
+        """The whole lines of the job's metrics.jsonl so far (``job``: a record the caller got from ``get`` or ``list``)."""
+        from worker.export import read_metrics_log
+
+        path = artifact_files(self.settings.job_dir(job.id)).get("metrics.jsonl")
+        return read_metrics_log(path) if path is not None else []
+
+    @staticmethod
+    def presets() -> list[str]:
+        """The training presets a job may name."""
+        from neudf_core.config import available_presets
+
+        return available_presets()
 
     def public(self, job: JobRecord) -> JobPublic:
         return JobPublic.of(job)

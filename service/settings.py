@@ -15,7 +15,7 @@ from typing import Annotated
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import NoDecode, SettingsConfigDict
 
-from worker.celery_app import QueueSettings
+from worker.settings import QueueSettings
 
 
 class Settings(QueueSettings):

@@ -23,7 +23,7 @@ import httpx
 import psutil
 import pytest
 
-from tests.conftest import QUICK_JOB, ServeProcess, finished, wait_job
+from tests.helpers import QUICK_JOB, ServeProcess, finished, wait_job
 
 ALICE = {"Authorization": "Bearer alice-token"}
 BOB = {"Authorization": "Bearer bob-token"}

@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.settings import Settings
-from tests.conftest import QUICK_JOB, assert_monotonic_progress, assert_valid_glb, finished, wait_job
+from tests.helpers import QUICK_JOB, assert_monotonic_progress, assert_valid_glb, finished, wait_job
 from worker.pipeline import STAGE_NAMES
 from worker.store import JobStore
 
@@ -25,7 +25,7 @@ def make_client(tmp_path: Path) -> Iterator[Callable[..., tuple[TestClient, Sett
 
     def make(**overrides: Any) -> tuple[TestClient, Settings]:
         settings = Settings(data_dir=tmp_path / f"data{len(clients)}", **overrides)
-        client = TestClient(create_app(settings, with_page=False))
+        client = TestClient(create_app(settings))
         client.__enter__()
         clients.append(client)
         return client, settings
@@ -295,24 +295,3 @@ def test_embedded_cancel_while_training(embedded_server: Any, tiny_video: Path) 
         assert train["state"] == "cancelled" and train["progress"] < 0.5
         assert [s["state"] for s in job["stages"][4:]] == ["pending", "pending"]
         assert client.delete(f"/api/jobs/{job_id}").status_code == 204
-
-
-def test_reconstruct_refuses_bad_input_in_one_line(tmp_path: Path) -> None:
-    """`neudf reconstruct` (the pipeline without a service): bad input is a one-line reason and exit code 2."""
-    import os
-    import subprocess
-    import sys
-
-    from tests.conftest import ROOT
-
-    not_video = tmp_path / "notes.mp4"
-    not_video.write_text("not a video\n")
-    for args, words in ((["reconstruct", str(tmp_path / "missing.mp4"), "--out", "m.glb"], "no such video"),
-                        (["reconstruct", str(not_video), "--out", "m.glb"], "not a video"),
-                        (["reconstruct", str(not_video), "--out", "m.stl"], "--out must end in")):
-        result = subprocess.run([sys.executable, "-m", "service.cli", *args], cwd=tmp_path, capture_output=True,
-                                text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
-        assert result.returncode == 2, result.stderr
-        assert words in result.stderr and "Traceback" not in result.stderr
-        assert len(result.stderr.strip().splitlines()) == 1
-    assert not (tmp_path / "m.work").exists()  # nothing started for a refused video

@@ -16,7 +16,8 @@ import torch
 import trimesh
 
 from neudf_core.export import export_mesh
-from neudf_core.meshing import color_vertices, extract_mesh, mesh_run
+from neudf_core.extract import mesh_run
+from neudf_core.meshing import NoSurfaceError, color_vertices, extract_mesh
 from neudf_core.metrics import boundary_loops
 
 RES = 128
@@ -174,12 +175,12 @@ def test_no_surface_in_bounds_is_a_clear_error():
         return (p - torch.tensor([3.0, 0.0, 0.0])).norm(dim=-1)
 
     for method in ("meshudf", "spsr"):
-        with pytest.raises(ValueError, match="no surface"):
+        with pytest.raises(NoSurfaceError, match="no surface"):
             extract_mesh(far, method=method, resolution=64)
-    with pytest.raises(ValueError, match="no surface"):
+    with pytest.raises(NoSurfaceError, match="no surface"):
         extract_mesh(lambda p: p.norm(dim=-1) + 0.1, method="mc", resolution=64)
     # a field whose lowest value stays above the threshold: no surface, whatever its gradients do
-    with pytest.raises(ValueError, match="never drops below threshold"):
+    with pytest.raises(NoSurfaceError, match="never drops below threshold"):
         extract_mesh(lambda p: bowl(p) + 0.1, method="meshudf", resolution=64)
     with pytest.raises(ValueError, match="unknown meshing method"):
         extract_mesh(bowl, method="poisson")
@@ -324,7 +325,7 @@ def test_mesh_run_end_to_end_on_a_trained_run(tiny_scene, tmp_path):
     # error says so instead of writing an empty file.
     udf_run = tmp_path / "udf_run"
     train(tiny_scene, udf_run, preset="quick", iters=2, overrides=TINY)
-    with pytest.raises(ValueError, match="no surface"):
+    with pytest.raises(NoSurfaceError, match="no surface"):
         mesh_run(udf_run, tmp_path / "udf.glb", resolution=32)
     assert not (tmp_path / "udf.glb").exists()
     with pytest.raises(ValueError, match="unsigned"):

@@ -1,7 +1,7 @@
-"""The queue: the job store's claims on SQLite and PostgreSQL, a real Celery worker on the real Redis, a
-worker SIGKILLed mid-job whose job finishes on a new worker without re-running its finished stages, a lost
-job sent again once the broker is back, a pool process killed under a live worker (failed, not retried),
-and what users read of an internal error."""
+"""The queue (``worker/celery_app.py``, ``worker/tasks.py``): a real Celery worker on the real Redis, a worker
+SIGKILLed mid-job whose job finishes on a new worker without re-running its finished stages, a lost job sent
+again once the broker is back, a pool process killed under a live worker (failed, not retried), and what
+users read of an internal error. (The store's own claims: tests/test_store.py.)"""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ import json
 import os
 import signal
 import time
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -21,8 +20,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.settings import Settings
-from tests.conftest import (
-    POSTGRES_URL,
+from tests.helpers import (
     QUICK_JOB,
     WorkerProcess,
     assert_monotonic_progress,
@@ -30,78 +28,15 @@ from tests.conftest import (
     finished,
     free_port,
     neudf_env,
+    new_job,
+    postgres_schema,
     wait_job,
 )
-from worker.celery_app import QueueSettings, create_celery
+from worker.celery_app import create_celery
 from worker.pipeline import STAGE_NAMES, completed_stages
+from worker.settings import QueueSettings
 from worker.store import JobStore
 from worker.tasks import recover_stale_jobs
-
-
-# -- the store ------------------------------------------------------------------------------------------------
-def _postgres_schema() -> Iterator[str]:
-    """A PostgreSQL URL whose tables live in a fresh schema, dropped afterwards; skip without a server."""
-    import sqlalchemy as sa
-
-    engine = sa.create_engine(POSTGRES_URL)
-    schema = f"neudf_test_{uuid.uuid4().hex[:8]}"
-    try:
-        with engine.begin() as conn:
-            conn.execute(sa.text(f"CREATE SCHEMA {schema}"))
-    except sa.exc.OperationalError:
-        pytest.skip("no PostgreSQL server at 127.0.0.1:5432")
-    try:
-        yield f"{POSTGRES_URL}?options=-csearch_path%3D{schema}"
-    finally:
-        with engine.begin() as conn:
-            conn.execute(sa.text(f"DROP SCHEMA {schema} CASCADE"))
-        engine.dispose()
-
-
-@pytest.fixture(params=["sqlite", "postgresql"])
-def store_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
-    if request.param == "sqlite":
-        yield f"sqlite:///{tmp_path / 'jobs.db'}"
-    else:
-        yield from _postgres_schema()
-
-
-def _new_job(store: JobStore) -> str:
-    job_id = uuid.uuid4().hex
-    store.create(job_id=job_id, owner=None, stages=list(STAGE_NAMES), options={}, input_name="v.mp4", input_bytes=1)
-    return job_id
-
-
-def test_store_claims_once_and_recovers_silent_jobs(store_url: str) -> None:
-    store = JobStore(store_url)
-    job_id = _new_job(store)
-    first = store.claim(job_id, "w1", stale_after_s=60)
-    assert first is not None and first.state == "running" and first.attempts == 1
-    assert store.claim(job_id, "w2", stale_after_s=60) is None  # a duplicate delivery while w1 is alive
-    assert not store.report(job_id, "w1", stage="frames", progress=0.1, message="x")
-    assert store.report(job_id, "w2", stage="frames", progress=0.2, message="x")  # not w2's job: stop
-    time.sleep(1.1)
-    assert [j.id for j in store.stale_running(stale_after_s=1)] == [job_id]
-    assert store.requeue_stale(job_id, stale_after_s=1) and not store.requeue_stale(job_id, stale_after_s=1)
-    second = store.claim(job_id, "w2", stale_after_s=60)
-    assert second is not None and second.attempts == 2 and second.worker == "w2"
-    assert not store.finish(job_id, "w1", "succeeded")  # w1 lost it
-    assert store.finish(job_id, "w2", "succeeded") and store.get(job_id).state == "succeeded"
-    assert store.claim(job_id, "w3", stale_after_s=0) is None  # finished jobs are never run again
-
-
-def test_store_cancel(store_url: str) -> None:
-    store = JobStore(store_url)
-    queued, running = _new_job(store), _new_job(store)
-    assert store.request_cancel(queued) == "cancelled"
-    assert store.claim(queued, "w1", 60) is None
-    store.claim(running, "w1", 60)
-    assert store.request_cancel(running) == "running"
-    assert store.report(running, "w1", stage="train", progress=0.5, message="x")  # the flag reaches the worker
-    assert store.request_cancel(uuid.uuid4().hex) is None
-    assert not store.delete(running)
-    store.finish(running, "w1", "cancelled")
-    assert store.delete(running) and store.get(running) is None
 
 
 # -- real workers on the embedded broker and on the real Redis ------------------------------------------------
@@ -112,7 +47,7 @@ def _queue_stack(tmp_path: Path, broker_url: str | None) -> Iterator[dict[str, A
     database_url = f"sqlite:///{tmp_path / 'jobs.db'}"
     if broker_url is not None:
         try:
-            gen = _postgres_schema()
+            gen = postgres_schema()
             database_url = next(gen)
         except pytest.skip.Exception:
             gen = None
@@ -130,7 +65,7 @@ def _queue_stack(tmp_path: Path, broker_url: str | None) -> Iterator[dict[str, A
         workers.append(worker)
         return worker
 
-    with TestClient(create_app(settings, with_page=False)) as client:
+    with TestClient(create_app(settings)) as client:
         try:
             yield {"client": client, "settings": settings, "start_worker": start_worker, "tmp": tmp_path}
         finally:
@@ -149,13 +84,13 @@ def test_lost_job_is_sent_again_once_the_broker_is_back(redis_db: str, tmp_path:
     down = QueueSettings(data_dir=tmp_path / "data", database_url=store_url, stale_after_s=1,
                          broker_url=f"redis://127.0.0.1:{free_port()}/0")
     store = JobStore(store_url)
-    job_id = _new_job(store)
+    job_id = new_job(store)
     store.claim(job_id, "w1", stale_after_s=60)
     time.sleep(1.1)  # w1 went silent
-    assert recover_stale_jobs(create_celery(down, with_tasks=False), store) == []
+    assert recover_stale_jobs(create_celery(down), store) == []
     assert store.get(job_id).state == "running"  # still the sweep's to find
     up = down.model_copy(update={"broker_url": redis_db})
-    assert recover_stale_jobs(create_celery(up, with_tasks=False), store) == [job_id]
+    assert recover_stale_jobs(create_celery(up), store) == [job_id]
     assert store.get(job_id).state == "queued"
     assert redis.Redis.from_url(redis_db).llen(up.queue) == 1  # its message waits for a worker
 

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from neudf_core import synthetic
 from neudf_core.cli import register
-from neudf_core.config import load_config
+from neudf_core.config import RETIRED, load_config, load_saved_config
 from neudf_core.dataset import DatasetError, load_dataset
 from neudf_core.trainer import RunError, learning_rate, load_model, sharpness_floor, train
 
@@ -155,6 +155,16 @@ def test_presets_are_data_and_unknown_ones_are_refused():
         load_config("turbo")
     with pytest.raises(ValueError):
         load_config("quick", {"renderer": {"weight": "volsdf"}})
+
+
+def test_a_run_saved_with_retired_options_still_loads():
+    saved = json.loads(load_config("quick").model_dump_json())
+    for block, retired in RETIRED.items():
+        saved[block].update(retired)  # what config.json held before these options went
+    assert load_saved_config(json.dumps(saved)) == load_config("quick")
+    saved["renderer"]["normal_reg_k"] = 0  # a value the code no longer has: refused, not ignored
+    with pytest.raises(ValueError, match="normal_reg_k"):
+        load_saved_config(json.dumps(saved))
 
 
 def test_learning_rate_warms_up_then_decays_to_the_end_factor():

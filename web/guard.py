@@ -154,7 +154,8 @@ class PageGuard:
     async def _check_request(self, scope: Scope, conn: HTTPConnection, receive: Receive, owner: str | None) -> Receive:
         requested = _file_requested(scope["path"])
         if requested is not None:
-            await run_in_threadpool(self._check_file, requested, owner)
+            # files in the jobs folder: only the caller's jobs' artifacts and frames
+            await run_in_threadpool(self.service.check_page_file, requested, owner)
         if scope["method"] in ("GET", "HEAD", "OPTIONS"):
             return receive
         declared = conn.headers.get("content-length")
@@ -169,13 +170,6 @@ class PageGuard:
         body = await read_body(receive, limit)
         await run_in_threadpool(check_named_paths, body)
         return replay(body, receive)
-
-    def _check_file(self, requested: str, owner: str | None) -> None:
-        """Files in the jobs folder: only the caller's jobs' artifacts and frames (Gradio resolves the same way)."""
-        target = Path(os.path.abspath(requested)).resolve()
-        jobs = self.service.settings.jobs_dir.resolve()
-        if target.is_relative_to(jobs) and target != jobs:
-            self.service.page_file(target.relative_to(jobs).parts[0], target, owner)
 
     async def _refuse(self, exc: JobRejected, scope: Scope, conn: HTTPConnection, receive: Receive,
                       send: Send) -> None:

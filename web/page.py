@@ -23,9 +23,8 @@ from fastapi import FastAPI, Request
 from gradio.data_classes import FileData
 
 from service.auth import TokenAuth
-from service.jobs import JobRejected, JobService
+from service.jobs import JobRecord, JobRejected, JobService
 from web.guard import PageGuard, add_login_routes, client_of, page_token, page_upload
-from worker.store import JobRecord
 
 POLL_S = 1.0
 AUTO_PRESET = "auto (the worker's device: quick on a CPU, gpu on CUDA)"
@@ -86,17 +85,12 @@ def _jobs_table(jobs: list[JobRecord]) -> pd.DataFrame:
     )
 
 
-def _loss_frame(service: JobService, job_id: str) -> pd.DataFrame | None:
-    from worker.stages.export import read_metrics_log
-
-    rows = read_metrics_log(service.settings.job_dir(job_id) / "run" / "metrics.jsonl")
-    rows = [r for r in rows if "iter" in r and "loss" in r]
+def _loss_frame(service: JobService, job: JobRecord) -> pd.DataFrame | None:
+    rows = [r for r in service.training_log(job) if "iter" in r and "loss" in r]
     return pd.DataFrame({"iter": [r["iter"] for r in rows], "loss": [r["loss"] for r in rows]}) if rows else None
 
 
 def build_page(service: JobService) -> gr.Blocks:
-    from neudf_core.config import available_presets
-
     settings = service.settings
 
     def owner_of(request: gr.Request) -> str | None:
@@ -161,7 +155,7 @@ def build_page(service: JobService) -> gr.Blocks:
         # Heavy widgets change only when their file did: a timer tick must not reload the 3-D view.
         names = set(job.artifacts)
         signature = {"job": job.id, "artifacts": sorted(names), "loss_rows": None}
-        loss = _loss_frame(service, job.id)
+        loss = _loss_frame(service, job)
         signature["loss_rows"] = None if loss is None else len(loss)
         same_job = shown.get("job") == job.id
         same_files = same_job and shown.get("artifacts") == signature["artifacts"]
@@ -196,7 +190,7 @@ def build_page(service: JobService) -> gr.Blocks:
                 # subclass would make Gradio write a .pyi beside this module); the handler only needs the path,
                 # and checks it (a page upload, and a video).
                 video.preprocess = _upload_path
-                presets = [(AUTO_PRESET, "")] + [(name, name) for name in available_presets()]
+                presets = [(AUTO_PRESET, "")] + [(name, name) for name in service.presets()]
                 preset = gr.Dropdown(presets, value=settings.default_preset or "", label="Preset")
                 minutes = gr.Number(label="Training minutes", value=None, minimum=0, elem_id="neudf-minutes",
                                     info="0 or empty: the default budget")
@@ -237,7 +231,11 @@ def build_page(service: JobService) -> gr.Blocks:
     return page
 
 
-def mount_page(app: FastAPI, service: JobService, auth: TokenAuth) -> None:
+def mount_page(app: FastAPI) -> None:
+    """Mount the page at / of an app ``service.app.create_app`` built (its job service and token checks in
+    ``app.state``), with the login routes and the guard in front of it. `neudf serve` calls this."""
+    service: JobService = app.state.service
+    auth: TokenAuth = app.state.auth
     page = build_page(service)
 
     def page_owner(request: Request) -> str | None:
@@ -247,7 +245,7 @@ def mount_page(app: FastAPI, service: JobService, auth: TokenAuth) -> None:
             return None
 
     add_login_routes(app, auth)  # before the page: its mount at / takes every path not routed yet
-    gr.set_static_paths([service.settings.jobs_dir])
+    gr.set_static_paths([service.files_root])
     gr.mount_gradio_app(app, page, path="/", footer_links=[], ssr_mode=False,
                         max_file_size=int(service.settings.max_upload_bytes), theme=page.neudf_theme,
                         css=page.neudf_css, auth_dependency=page_owner if auth.enabled else None)

@@ -1,22 +1,29 @@
-"""Command-line commands of the worker layer: ``neudf capture``.
+"""Command-line commands of the worker layer: ``neudf capture``, ``neudf reconstruct``, ``neudf worker``.
 
-service/cli.py builds the one ``neudf`` app from this module's :func:`register` and those of the other
-layers. Bad input ends with a one-line reason on stderr and a non-zero exit code, never a traceback.
+The ``neudf`` entry point (web/cli.py, through service/cli.py) builds one typer app from this module's
+:func:`register` and those of the other layers; ``python -m worker.cli`` runs the core's and this layer's
+commands without the service (the embedded worker of `neudf serve` starts as ``python -m worker.cli
+worker``). Bad input ends with a one-line reason on stderr and a non-zero exit code, never a traceback.
 """
 
 from __future__ import annotations
 
+import os
+import shutil
+import sys
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-__all__ = ["register", "capture"]
+from neudf_core.cli import fail, progress_bar
 
+if TYPE_CHECKING:  # the commands import what they need when they run: `neudf --help` stays fast
+    from worker.settings import QueueSettings
 
-def _fail(message: str, code: int) -> typer.Exit:
-    typer.echo(f"error: {message}", err=True)
-    return typer.Exit(code)
+__all__ = ["register", "capture", "reconstruct", "worker", "main"]
+
+MESH_SUFFIXES = (".glb", ".ply", ".obj")
 
 
 def capture(
@@ -31,38 +38,26 @@ def capture(
 ) -> None:
     """Video -> frames, pycolmap poses, normalisation: DATA/image, cameras_sphere.npz, frames.json, capture.json, cameras.png."""
     from pydantic import ValidationError
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from worker.capture import run_capture
+    from worker.capture.poses import PoseOptions
+    from worker.capture.run import run_capture
     from worker.errors import StageError
-    from worker.stages.poses import PoseOptions
 
     if not video.is_file():
-        raise _fail(f"no such video: {video}", 2)
+        fail(f"no such video: {video}", 2)
     try:
         pose_options = PoseOptions(camera_model=camera_model.upper(), num_threads=threads)
     except ValidationError:
-        raise _fail(f"unknown camera model {camera_model!r}: use OPENCV, SIMPLE_RADIAL, RADIAL or PINHOLE", 2) from None
+        fail(f"unknown camera model {camera_model!r}: use OPENCV, SIMPLE_RADIAL, RADIAL or PINHOLE", 2)
 
-    console = Console(stderr=True)
-    columns = (TextColumn("[bold]{task.fields[stage]:<6}"), BarColumn(), TaskProgressColumn(), TimeElapsedColumn(),
-               TimeRemainingColumn(), TextColumn("{task.description}"))
     try:
-        with Progress(*columns, console=console, transient=False) as bar:
-            task = bar.add_task("", total=1.0, stage="")
-
-            def report(fraction: float, message: str = "", **info: Any) -> None:
-                text = message.split(": ", 1)[-1] if info.get("stage") else message
-                bar.update(task, completed=min(max(fraction, 0.0), 1.0), description=text[:70],
-                           stage=info.get("stage", ""))
-
+        with progress_bar("capture") as report:
             record = run_capture(video, out, n_frames=frames, max_size=max_size, pose_options=pose_options,
                                  resume=not fresh, progress=report)
     except StageError as exc:
-        raise _fail(f"{exc.stage}: {exc.message}", 1) from None
+        fail(f"{exc.stage}: {exc.message}", 1)
     except KeyboardInterrupt:
-        raise _fail(f"interrupted; run the same command again to resume in {out}", 130) from None
+        fail(f"interrupted; run the same command again to resume in {out}", 130)
     seconds = sum(record.get("seconds", {}).values())
     typer.echo(
         f"{out}: {record['frames_registered']}/{record['frames_total']} frames registered, "
@@ -73,6 +68,126 @@ def capture(
         typer.echo(f"warning: {warning}", err=True)
 
 
+def reconstruct(
+    video: Annotated[Path, typer.Argument(help="The video (MP4, MOV, ...).")],
+    out: Annotated[Path, typer.Option("--out", help="The mesh to write: .glb, .ply or .obj.")],
+    preset: Annotated[str | None, typer.Option(help="Training preset: quick, fast, gpu or paper (default: quick on "
+                                                    "a CPU, gpu on CUDA).")] = None,
+    minutes: Annotated[float | None, typer.Option(help="Training budget in minutes (default 10 unless --iters is given); "
+                                                      "training stops at it or at --iters, whichever comes first.")] = None,
+    iters: Annotated[int | None, typer.Option(help="Training iterations (default: as many as --minutes allows).")] = None,
+    weight: Annotated[str, typer.Option(help="Weight of the volume rendering: neudf, or the closed-surface "
+                                             "baselines neus_sdf and neus_abs.")] = "neudf",
+    frames: Annotated[int | None, typer.Option(help="Frames to pick from the video.")] = None,
+    work_dir: Annotated[Path | None, typer.Option(help="Stage outputs (kept; run again to resume). Default: OUT's name + '.work'.")] = None,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    mesh_resolution: Annotated[int | None, typer.Option(help="Grid resolution of mesh extraction.")] = None,
+    mesh_method: Annotated[str | None, typer.Option(help="meshudf, spsr or mc.")] = None,
+    mesh_threshold: Annotated[float | None, typer.Option(help="UDF level under which a face counts as surface.")] = None,
+    mesh_min_faces: Annotated[int | None, typer.Option(help="Connected pieces with fewer faces are dropped (default 32).")] = None,
+    mesh_min_seen: Annotated[float | None, typer.Option(help="Share of the cameras that must see a face (default 0.15; 0 keeps every face).")] = None,
+) -> None:
+    """Run the whole pipeline on a video without a service: frames, poses, training, mesh, export."""
+    from pydantic import ValidationError
+
+    from neudf_core.device import resolve_device
+    from worker.capture.frames import probe_video
+    from worker.pipeline import JobOptions, StageError, run_pipeline
+
+    if not video.is_file():
+        fail(f"no such video: {video}")
+    if out.suffix.lower() not in MESH_SUFFIXES:
+        fail(f"--out must end in {', '.join(MESH_SUFFIXES)}, got {out.name}")
+    try:
+        probe_video(video)
+    except StageError as exc:
+        fail(f"{video.name}: {exc.message}")
+    try:
+        options = JobOptions(preset=preset, minutes=minutes, iters=iters, weight=weight, frames=frames, mesh_resolution=mesh_resolution,
+                             mesh_method=mesh_method, mesh_threshold=mesh_threshold,
+                             mesh_min_faces=mesh_min_faces, mesh_min_seen=mesh_min_seen)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        fail(f"{'.'.join(map(str, first['loc']))}: {first['msg']}")
+    device = resolve_device(device)
+    work = work_dir or out.with_name(out.stem + ".work")
+    job_dir = work.resolve()
+    input_dir = job_dir / "input"
+    input_dir.mkdir(parents=True, exist_ok=True)
+    staged = input_dir / f"video{video.suffix.lower() or '.bin'}"
+    if not staged.exists() or staged.stat().st_size != video.stat().st_size:
+        shutil.copyfile(video, staged)
+    try:
+        # The bar's time left is the job's own ETA (the running stage's estimate plus the expected time of the
+        # later stages), not an extrapolation of the overall fraction, which the stages' uneven weights skew.
+        with progress_bar("start") as report:
+            run_pipeline(staged, job_dir, options, report, device=device)
+    except StageError as exc:
+        fail(f"{exc.stage}: {exc.message}", 1)
+    except KeyboardInterrupt:
+        fail(f"interrupted; run the same command again to resume from {work}", 130)
+    _write_mesh(job_dir / "export", out)
+    typer.echo(f"wrote {out} (stage outputs in {work})", err=True)
+
+
+def _write_mesh(export_dir: Path, out: Path) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    suffix = out.suffix.lower()
+    if suffix in (".glb", ".ply"):
+        shutil.copyfile(export_dir / f"mesh{suffix}", out)
+        return
+    import trimesh
+
+    trimesh.load(export_dir / "mesh.ply", process=False, force="mesh").export(out)
+
+
+def load_settings(cls: type[QueueSettings] | None = None, **overrides: Any) -> QueueSettings:
+    """Settings of class ``cls`` (default ``QueueSettings``) from the environment and the options that were given;
+    a bad value ends the command with its name and reason."""
+    from pydantic import ValidationError
+
+    from worker.settings import QueueSettings
+
+    try:
+        return (cls or QueueSettings)(**{k: v for k, v in overrides.items() if v is not None})
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        fail(f"bad setting {'.'.join(map(str, first['loc']))}: {first['msg']}")
+
+
+def worker(
+    concurrency: Annotated[int | None, typer.Option(help="Jobs at once (NEUDF_WORKER_CONCURRENCY; one per GPU).")] = None,
+    loglevel: Annotated[str, typer.Option(help="Celery log level.")] = "INFO",
+) -> None:
+    """Start a Celery worker that runs jobs from the broker in NEUDF_BROKER_URL (scaled deployments)."""
+    import socket
+
+    from worker.celery_app import create_celery, run_worker
+    from worker.tasks import register_tasks
+
+    app = create_celery(load_settings(worker_concurrency=concurrency))
+    register_tasks(app)
+    # A unique node name per process, so several workers on one host stay apart in the store.
+    run_worker(app, loglevel=loglevel, hostname=f"neudf-{os.getpid()}@{socket.gethostname()}")
+
+
 def register(app: typer.Typer) -> None:
     """Add the worker layer's commands to ``app``."""
     app.command("capture")(capture)
+    app.command()(reconstruct)
+    app.command()(worker)
+
+
+def main() -> None:
+    """``python -m worker.cli``: the core's and the worker layer's commands (everything but `neudf serve`)."""
+    import neudf_core.cli
+
+    app = typer.Typer(name="neudf", help="NeUDF without the service: capture, reconstruct, train, mesh, eval and "
+                      "the job worker.", no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False)
+    neudf_core.cli.register(app)
+    register(app)
+    app(prog_name="neudf")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -6,6 +6,8 @@ outputs are both present is skipped, so a job that was interrupted resumes after
 (training itself also resumes from its last checkpoint). When a stage has to run again, the stages after
 it are cleared, since their inputs changed.
 
+The capture stages (frames, poses, scene) live in :mod:`worker.capture`, training and meshing in
+:mod:`neudf_core`, the export stage in :mod:`worker.export`; this module only strings them together.
 The same ``run_pipeline`` runs from the CLI (``neudf reconstruct``), from a Celery task and from tests.
 Progress goes to one callback: the overall fraction (stages weighted by their usual share of the time),
 a message, and ``stage``, ``stage_progress``, ``event`` ("start", "progress", "done", "skipped") plus the
@@ -25,7 +27,6 @@ Job folder::
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import time
 from collections.abc import Callable
@@ -35,6 +36,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from neudf_core.files import write_json_atomic
 from neudf_core.progress import Cancelled, ProgressFn, null_progress, sub_progress
 from worker.errors import StageError
 
@@ -104,7 +106,7 @@ class JobContext:
 
     @property
     def frames(self) -> int:
-        from worker.stages.frames import DEFAULT_FRAMES
+        from worker.capture.frames import DEFAULT_FRAMES
 
         return self.options.frames or DEFAULT_FRAMES
 
@@ -127,7 +129,7 @@ class JobContext:
 
 # -- the stages: thin adapters over the functions that do the work -------------------------------------
 def _frames(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
-    from worker.stages.frames import extract_frames
+    from worker.capture.frames import extract_frames
 
     kwargs: dict[str, Any] = {}
     if ctx.options.frames is not None:
@@ -135,14 +137,14 @@ def _frames(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
     if ctx.options.max_size is not None:
         kwargs["max_size"] = ctx.options.max_size
     extract_frames(ctx.video, ctx.data_dir, progress=progress, **kwargs)
-    from worker.stages.export import write_frames_montage
+    from worker.export import write_frames_montage
 
     write_frames_montage(ctx.data_dir / "image", ctx.export_dir / "frames.png")
     return {"frames_selected": len(list((ctx.data_dir / "image").glob("*.png")))}
 
 
 def _poses(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
-    from worker.stages.poses import estimate_poses
+    from worker.capture.poses import estimate_poses
 
     figures = estimate_poses(ctx.data_dir, progress=progress)
     keep = ("frames_total", "frames_registered", "reprojection_error_px", "points", "warnings")
@@ -150,7 +152,7 @@ def _poses(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
 
 
 def _scene(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
-    from worker.stages.scene import write_scene
+    from worker.capture.scene import write_scene
 
     write_scene(ctx.data_dir, progress=progress)
     capture_file = ctx.data_dir / "capture.json"
@@ -167,12 +169,13 @@ def _train(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
     overrides = {"renderer": {"weight": ctx.options.weight}} if ctx.options.weight != "neudf" else None
     result = train(ctx.data_dir, ctx.run_dir, preset=ctx.preset, iters=ctx.options.iters, minutes=minutes,
                    device=ctx.device, progress=progress, overrides=overrides)
-    keep = ("iters", "psnr", "loss", "iters_per_s", "images", "preset", "stopped_by", "minutes", "train_s")
+    keep = ("iters", "psnr", "loss", "iters_per_s", "images", "preset", "device", "stopped_by", "minutes", "train_s")
     return {f"train_{k}" if k in ("loss", "psnr") else k: result[k] for k in keep if result.get(k) is not None}
 
 
 def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
-    from neudf_core.meshing import mesh_run
+    from neudf_core.extract import mesh_run
+    from neudf_core.meshing import NoSurfaceError, NothingSeenError
 
     kwargs: dict[str, Any] = {}
     if ctx.options.mesh_method is not None:
@@ -192,16 +195,18 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
         cull = ctx.options.mesh_min_seen != 0
         mesh = mesh_run(ctx.run_dir, ctx.mesh_file, device=ctx.device, progress=progress,
                         views=ctx.data_dir if cull else None, **kwargs)
-    except ValueError as exc:  # a field without a surface, a method that does not fit the field, ...
-        hint = (". Train longer (more iterations) or raise mesh_threshold." if "no surface" in str(exc) else
-                ". Train longer or lower mesh_min_seen (0 keeps every face)." if "no face is seen" in str(exc) else "")
-        raise StageError("mesh", f"{exc}{hint}") from exc
+    except NoSurfaceError as exc:
+        raise StageError("mesh", f"{exc}. Train longer (more minutes) or raise mesh_threshold.") from exc
+    except NothingSeenError as exc:
+        raise StageError("mesh", f"{exc}. Train longer or lower mesh_min_seen (0 keeps every face).") from exc
+    except ValueError as exc:  # a method that does not fit the field, ...
+        raise StageError("mesh", str(exc)) from exc
     info = mesh.metadata.get("meshing", {})
     return {f"mesh_{k}": info[k] for k in ("method", "resolution", "threshold", "faces_unseen") if k in info}
 
 
 def _export(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
-    from worker.stages.export import export_job
+    from worker.export import export_job
 
     return export_job(ctx.mesh_file, ctx.data_dir, ctx.run_dir, ctx.export_dir, progress=progress)
 
@@ -276,11 +281,7 @@ def _changed_beyond_resumable(stage: Stage, ctx: JobContext) -> bool:
 
 
 def _write_marker(job_dir: Path, name: str, record: dict[str, Any]) -> None:
-    marker = _marker(job_dir, name)
-    marker.parent.mkdir(parents=True, exist_ok=True)
-    tmp = marker.with_suffix(".tmp")
-    tmp.write_text(json.dumps(record, indent=2))
-    os.replace(tmp, marker)  # atomic: a marker is either whole or absent
+    write_json_atomic(_marker(job_dir, name), record)  # a marker is either whole or absent
 
 
 def completed_stages(job_dir: Path) -> dict[str, dict[str, Any]]:

@@ -35,8 +35,9 @@ from celery import signals
 from celery.exceptions import SoftTimeLimitExceeded, TimeLimitExceeded
 
 from neudf_core.progress import Cancelled
-from worker.celery_app import TASK_RUN_JOB, NeudfCelery, QueueSettings, enqueue_job
+from worker.celery_app import TASK_RUN_JOB, NeudfCelery, enqueue_job
 from worker.pipeline import JobOptions, StageError, artifact_files, completed_stages, run_pipeline
+from worker.settings import QueueSettings
 from worker.store import JobRecord, JobStore, StageRecord, utcnow
 
 log = logging.getLogger("neudf.worker")
@@ -327,8 +328,8 @@ class WorkerMonitor:
 # Imported once in the worker's main process, so each job's fresh pool process is forked with them
 # loaded instead of spending seconds importing torch and friends. Importing torch does not start CUDA, so
 # forking after it is safe; the device is picked inside the job's process.
-PRELOAD = ("torch", "neudf_core.trainer", "neudf_core.meshing", "worker.stages.frames", "worker.stages.poses",
-           "worker.stages.scene", "worker.stages.export")
+PRELOAD = ("torch", "neudf_core.trainer", "neudf_core.extract", "worker.capture.frames", "worker.capture.poses",
+           "worker.capture.scene", "worker.export")
 
 
 def preload_modules() -> None:

@@ -26,7 +26,6 @@ and the synthetic renderer's convention). Figures go into ``capture.json`` under
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import time
 from pathlib import Path
@@ -37,10 +36,11 @@ import pycolmap
 from pydantic import BaseModel, ConfigDict, Field
 
 from neudf_core.dataset import REGION_FILE
+from neudf_core.files import atomic_write, link_or_copy, write_json_atomic
 from neudf_core.progress import ProgressFn, null_progress
+from worker.capture.poses import colmap_dir, undistorted_dir
+from worker.capture.records import update_capture_json
 from worker.errors import StageError
-from worker.stages.frames import update_capture_json, write_json_atomic
-from worker.stages.poses import colmap_dir, undistorted_dir
 
 __all__ = ["STAGE", "SceneOptions", "SceneCameras", "write_scene", "is_done", "load_model", "axes_point",
            "up_direction", "upright_rotation"]
@@ -247,13 +247,6 @@ def is_done(data_dir: str | Path) -> bool:
     return n_cams > 0 and n_cams == len(list((data_dir / "image").glob("*.png")))
 
 
-def _link_or_copy(src: Path, dst: Path) -> None:
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
-
-
 def _write_images(data_dir: Path, cams: SceneCameras, progress: ProgressFn) -> list[dict[str, Any]]:
     """Replace DATA/image by the registered, undistorted frames renumbered 000.png...; frames.json to match."""
     source = undistorted_dir(data_dir) / "images"
@@ -266,7 +259,7 @@ def _write_images(data_dir: Path, cams: SceneCameras, progress: ProgressFn) -> l
     entries = []
     for i, name in enumerate(cams.names):
         new = f"{i:0{digits}d}.png"
-        _link_or_copy(source / name, staging / new)
+        link_or_copy(source / name, staging / new)
         entries.append({**frames_all[name], "file": new})
         if i % 20 == 0:
             progress(0.2 + 0.5 * i / len(cams.names), f"writing frame {i + 1}/{len(cams.names)}")
@@ -329,10 +322,9 @@ def plot_cameras(path: Path, centers: np.ndarray, axes: np.ndarray, points: np.n
     top.set_title("from above (dashed: unit sphere)", fontsize=9)
     fig.suptitle(title, fontsize=11)
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp)
+    with atomic_write(path) as tmp:  # cameras.tmp.png: the picture is handed out as soon as it exists
+        fig.savefig(tmp)
     plt.close(fig)
-    os.replace(tmp, path)
 
 
 def write_scene(
@@ -374,9 +366,8 @@ def write_scene(
         w2c[:3, 3] = cams.R[i] @ centre + cams.t[i]
         arrays[f"world_mat_{i}"] = K4 @ w2c
         arrays[f"scale_mat_{i}"] = scale_mat
-    tmp = data_dir / "cameras_sphere.tmp.npz"
-    np.savez(tmp, **arrays)
-    os.replace(tmp, data_dir / "cameras_sphere.npz")
+    with atomic_write(data_dir / "cameras_sphere.npz") as tmp:  # cameras_sphere.tmp.npz
+        np.savez(tmp, **arrays)
 
     progress(0.8, "drawing the camera path")
     unit_centers = centers_w / sphere_radius

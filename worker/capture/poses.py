@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 import shutil
 import time
 from collections.abc import Iterator
@@ -42,9 +41,10 @@ import numpy as np
 import pycolmap
 from pydantic import BaseModel, ConfigDict, Field
 
+from neudf_core.files import link_or_copy, write_json_atomic
 from neudf_core.progress import Cancelled, ProgressFn, null_progress, sub_progress
+from worker.capture.records import read_frames_json, update_capture_json
 from worker.errors import StageError
-from worker.stages.frames import read_frames_json, update_capture_json, write_json_atomic
 
 __all__ = ["STAGE", "PoseOptions", "estimate_poses", "is_done", "image_pairs", "pose_jumps", "jump_indices",
            "colmap_dir", "undistorted_dir"]
@@ -291,13 +291,6 @@ def _max_distortion_px(camera: pycolmap.Camera) -> float:
     return float(np.abs(pinhole - pixels).max())
 
 
-def _link_or_copy(src: Path, dst: Path) -> None:
-    try:
-        os.link(src, dst)  # same file system: no second copy of 200 frames
-    except OSError:
-        shutil.copy2(src, dst)
-
-
 def _undistort(model: pycolmap.Reconstruction, model_dir: Path, image_dir: Path, out: Path,
                threshold_px: float) -> dict[str, Any]:
     shutil.rmtree(out, ignore_errors=True)
@@ -311,7 +304,7 @@ def _undistort(model: pycolmap.Reconstruction, model_dir: Path, image_dir: Path,
     (out / "sparse").mkdir()
     for image in model.images.values():
         if image.has_pose:
-            _link_or_copy(image_dir / image.name, out / "images" / image.name)
+            link_or_copy(image_dir / image.name, out / "images" / image.name)
     pinhole = pycolmap.Reconstruction(str(model_dir))  # a copy: the mapped model stays as it was
     for cam in pinhole.cameras.values():  # in place: images keep pointing at their camera
         params = [cam.focal_length_x, cam.focal_length_y, cam.principal_point_x, cam.principal_point_y]

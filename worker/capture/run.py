@@ -1,9 +1,10 @@
 """The capture pipeline: phone video -> frames -> pycolmap poses -> normalised NeuS-layout dataset.
 
-``run_capture`` runs the three stages of :mod:`worker.stages` on one data folder, each reporting into its
+``run_capture`` runs the three stages of :mod:`worker.capture` on one data folder, each reporting into its
 share of one progress callback, and skips a stage whose outputs are already complete (``is_done``) and
 were made with the same options (recorded in capture.json), so an interrupted capture resumes where it
-stopped. Once a stage runs, the ones after it run too: their inputs changed. ``neudf capture`` (worker/cli.py) and the job pipeline call it, or its stages one by one.
+stopped. Once a stage runs, the ones after it run too: their inputs changed. ``neudf capture`` (worker/cli.py)
+calls it; the job pipeline (worker/pipeline.py) runs its stages one by one.
 """
 
 from __future__ import annotations
@@ -14,16 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
-import numpy as np
-
 from neudf_core.progress import ProgressFn, null_progress, sub_progress
-from worker.stages import frames, poses, scene
-from worker.stages.frames import VideoLimits
-from worker.stages.poses import PoseOptions
-from worker.stages.scene import SceneOptions
+from worker.capture import frames, poses, scene
+from worker.capture.frames import VideoLimits
+from worker.capture.poses import PoseOptions
+from worker.capture.scene import SceneOptions
 
-__all__ = ["CaptureStage", "CAPTURE_STAGES", "run_capture", "load_dataset_cameras", "align_cameras", "pose_errors"]
+__all__ = ["CaptureStage", "CAPTURE_STAGES", "run_capture"]
 
 
 @dataclass(frozen=True)
@@ -109,62 +107,3 @@ def _read_json(path: Path) -> dict[str, Any]:
         return json.loads(path.read_text())
     except (OSError, ValueError):
         return {}
-
-
-# -- checks against known cameras (tests, benchmarks) ---------------------------------------------------------
-def load_dataset_cameras(data_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Intrinsics (N, 3, 3) and camera-to-world (N, 4, 4, OpenCV axes) in unit-sphere coordinates.
-
-    Reads cameras_sphere.npz as a NeuS loader does: P_i = world_mat_i @ scale_mat_i, split by an RQ
-    decomposition into K and [R | t].
-    """
-    with np.load(Path(data_dir) / "cameras_sphere.npz") as arrays:
-        n = sum(1 for k in arrays.files if k.startswith("world_mat_"))
-        Ks, c2ws = [], []
-        for i in range(n):
-            P = (arrays[f"world_mat_{i}"] @ arrays[f"scale_mat_{i}"])[:3, :4]
-            K, R, c = cv2.decomposeProjectionMatrix(P)[:3]
-            K = K / K[2, 2]
-            c2w = np.eye(4)
-            c2w[:3, :3] = R.T
-            c2w[:3, 3] = (c[:3] / c[3]).ravel()
-            Ks.append(K)
-            c2ws.append(c2w)
-    return np.stack(Ks), np.stack(c2ws)
-
-
-def align_cameras(est_c2w: np.ndarray, true_c2w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) taking estimated cameras (N, 4, 4) onto the true ones.
-
-    Umeyama on the centres alone leaves the rotation poorly fixed when the centres are nearly coplanar (an
-    orbit): a centre error of 1% of the radius out of the plane tilts it by about half a degree, and that
-    tilt then shows up as rotation error in every camera. So R fits the centres (normalised to unit RMS
-    spread) and the cameras' orientations together; s and t then fit the centres given R.
-    """
-    src, dst = est_c2w[:, :3, 3], true_c2w[:, :3, 3]
-    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
-    xs, xd = src - mu_s, dst - mu_d
-    spread = max(float(np.sqrt((xs**2).sum(axis=1).mean() * (xd**2).sum(axis=1).mean())), 1e-12)
-    # maximise sum_i <R x_i, y_i> / spread + sum_i tr(true_i^T R est_i): one SVD of the summed correlations
-    H = xd.T @ xs / spread + np.einsum("nij,nkj->ik", true_c2w[:, :3, :3], est_c2w[:, :3, :3])
-    U, _, Vt = np.linalg.svd(H / len(src))
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:  # a reflection is not a rotation
-        S[2, 2] = -1
-    R = U @ S @ Vt
-    s = float(np.einsum("ni,ni->", xd, xs @ R.T) / max((xs**2).sum(), 1e-12))
-    return s, R, mu_d - s * R @ mu_s
-
-
-def pose_errors(est_c2w: np.ndarray, true_c2w: np.ndarray) -> dict[str, Any]:
-    """Errors of estimated cameras against the truth after the best similarity alignment (see align_cameras).
-
-    Returns the alignment and per-camera errors: rotation (degrees) and centre distance (truth units).
-    """
-    s, R, t = align_cameras(est_c2w, true_c2w)
-    centres = s * est_c2w[:, :3, 3] @ R.T + t
-    centre_err = np.linalg.norm(centres - true_c2w[:, :3, 3], axis=1)
-    rel = np.einsum("nji,njk->nik", R @ est_c2w[:, :3, :3], true_c2w[:, :3, :3])  # (R est)^T true
-    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)
-    rot_err = np.degrees(np.arccos(cos))
-    return {"scale": s, "rotation": R, "translation": t, "rotation_deg": rot_err, "centre_err": centre_err}

@@ -17,9 +17,7 @@ corrupt file, a resolution or duration beyond :class:`VideoLimits`, too few usab
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import shutil
 import time
 from dataclasses import dataclass
@@ -32,7 +30,9 @@ import numpy as np
 from PIL import Image
 from pydantic import BaseModel, ConfigDict, Field
 
+from neudf_core.files import write_json_atomic
 from neudf_core.progress import ProgressFn, null_progress
+from worker.capture.records import read_frames_json, update_capture_json
 from worker.errors import StageError
 
 __all__ = [
@@ -42,10 +42,7 @@ __all__ = [
     "probe_video",
     "extract_frames",
     "is_done",
-    "read_frames_json",
     "options_record",
-    "update_capture_json",
-    "write_json_atomic",
 ]
 
 STAGE = "frames"
@@ -89,40 +86,12 @@ class VideoInfo(BaseModel):
     file_bytes: int
 
 
-# -- small file helpers shared by the capture stages --------------------------------------------------
-def write_json_atomic(path: Path, value: Any) -> None:
-    """Write JSON so a reader (or a resumed job) never sees half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(value, indent=2))
-    os.replace(tmp, path)
-
-
-def update_capture_json(data_dir: str | Path, seconds: dict[str, float] | None = None, drop: tuple[str, ...] = (),
-                        **fields: Any) -> dict:
-    """Merge ``fields`` (and per-stage ``seconds``) into ``DATA/capture.json``, removing the keys in ``drop``."""
-    path = Path(data_dir) / "capture.json"
-    record: dict[str, Any] = json.loads(path.read_text()) if path.is_file() else {}
-    for key in drop:
-        record.pop(key, None)
-    record.update(fields)
-    if seconds:
-        record["seconds"] = {**record.get("seconds", {}), **{k: round(v, 3) for k, v in seconds.items()}}
-    write_json_atomic(path, record)
-    return record
-
-
 def options_record(video: str | Path, n_frames: int, max_size: int, min_sharpness: float) -> dict[str, Any]:
     """What decides this stage's output: kept in capture.json so a resumed capture can tell it changed."""
     video = Path(video).resolve()
     size = video.stat().st_size if video.is_file() else None
     return {"video": str(video), "video_bytes": size, "n_frames": n_frames, "max_size": max_size,
             "min_sharpness": min_sharpness}
-
-
-def read_frames_json(data_dir: str | Path) -> list[dict[str, Any]]:
-    """The entries of ``DATA/frames.json`` (one per image, in image order)."""
-    return json.loads((Path(data_dir) / "frames.json").read_text())
 
 
 def is_done(data_dir: str | Path) -> bool:

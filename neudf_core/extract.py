@@ -1,0 +1,85 @@
+"""Meshing a trained run folder: load the model, extract the open mesh, keep what the cameras see,
+colour the vertices and write the file (``neudf mesh``, the worker's mesh stage)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import trimesh
+
+from neudf_core.dataset import load_cameras
+from neudf_core.export import SUFFIXES, export_mesh
+from neudf_core.meshing import (
+    UNIT_BOUNDS, Method, NothingSeenError, color_vertices, cull_unseen, drop_small_components, extract_mesh,
+)
+from neudf_core.meshing.cleanup import keep_above
+from neudf_core.numerics import flush_denormals
+from neudf_core.progress import ProgressFn, null_progress, sub_progress
+from neudf_core.trainer import load_model
+
+
+def mesh_run(
+    run_dir: str | Path,
+    out_path: str | Path,
+    *,
+    method: Method | None = None,
+    resolution: int = 256,
+    threshold: float | None = None,
+    min_component_faces: int = 32,
+    min_component_fraction: float = 0.01,
+    views: str | Path | None = None,
+    min_seen_fraction: float = 0.15,
+    device: str = "cpu",
+    progress: ProgressFn = null_progress,
+) -> trimesh.Trimesh:
+    """Mesh a trained run: UDF in the unit sphere's bounding box, vertex colours, exported to ``out_path``.
+
+    The suffix of ``out_path`` picks the format (.glb, .ply, .obj); raises ValueError for others before
+    the long work starts and for a method that does not fit the field (mc for NeuS-SDF runs, meshudf or
+    spsr for unsigned ones); :class:`NoSurfaceError` when the field has no surface yet. Options as
+    :func:`extract_mesh`.
+    ``views``: the run's dataset folder; faces that fewer than ``min_seen_fraction`` of its cameras see
+    are dropped (:func:`cull_unseen`; 0.15 is 8 of 48 views, where culling a tube's and a pants' inner
+    sheets stopped gaining); :class:`NothingSeenError` when that leaves no face.
+    """
+    if Path(out_path).suffix.lower() not in SUFFIXES:
+        raise ValueError(f"unknown mesh format {Path(out_path).suffix!r}: use one of {', '.join(SUFFIXES)}")
+    flush_denormals()
+    model = load_model(run_dir, device)
+    model.eval()
+    signed = bool(getattr(model, "signed", False))
+    method = method or ("mc" if signed else "meshudf")
+    cameras = load_cameras(views) if views is not None else None  # bad folders fail before the long work
+    if signed and method != "mc":
+        raise ValueError(f"{run_dir} learned a signed field (the NeuS-SDF baseline): mesh it with method mc")
+    if not signed and method == "mc":
+        raise ValueError(f"{run_dir} learned an unsigned field: mc needs a sign, use meshudf or spsr")
+
+    def grad_fn(x: torch.Tensor) -> torch.Tensor:
+        return model.udf_and_grad(x)[1]
+
+    mesh = extract_mesh(
+        model.udf, method=method, resolution=resolution, bounds=UNIT_BOUNDS, threshold=threshold,
+        grad_fn=grad_fn, min_component_faces=min_component_faces, min_component_fraction=min_component_fraction,
+        device=device, progress=sub_progress(progress, 0.0, 0.85),
+    )
+    floor_y = model.cfg.data.floor_y
+    if floor_y is not None:  # training rendered nothing of the object below the floor: what is there is a guess
+        mesh = keep_above(mesh, floor_y)
+    if cameras is not None:
+        progress(0.85, "dropping what no camera sees")
+        info = mesh.metadata["meshing"]
+        faces_before = len(mesh.faces)
+        mesh = cull_unseen(mesh, cameras, min_seen_fraction, tol=2.0 * info["voxel"])
+        mesh = drop_small_components(mesh, min_component_faces, min_component_fraction)
+        if len(mesh.faces) == 0:
+            raise NothingSeenError(
+                f"no face is seen by {min_seen_fraction:.0%} of the {len(cameras)} cameras in {views}")
+        mesh.metadata["meshing"] = {**info, "views": str(views), "cameras": len(cameras),
+                                    "min_seen_fraction": min_seen_fraction,
+                                    "faces_unseen": faces_before - len(mesh.faces)}
+    color_vertices(mesh, model.color, device=device, progress=sub_progress(progress, 0.9, 0.98))
+    export_mesh(mesh, out_path)
+    progress(1.0, f"wrote {out_path}")
+    return mesh
