@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from neudf_core.cli import fail, progress_bar
+from worker.pipeline import DEFAULT_TRAIN_MINUTES
 
 if TYPE_CHECKING:  # the commands import what they need when they run: `neudf --help` stays fast
     from worker.settings import QueueSettings
@@ -73,7 +74,7 @@ def reconstruct(
     out: Annotated[Path, typer.Option("--out", help="The mesh to write: .glb, .ply or .obj.")],
     preset: Annotated[str | None, typer.Option(help="Training preset: quick, fast, gpu or paper (default: quick on "
                                                     "a CPU, gpu on CUDA).")] = None,
-    minutes: Annotated[float | None, typer.Option(help="Training budget in minutes (default 10 unless --iters is given); "
+    minutes: Annotated[float | None, typer.Option(help=f"Training budget in minutes (default {DEFAULT_TRAIN_MINUTES:g} unless --iters is given); "
                                                       "training stops at it or at --iters, whichever comes first.")] = None,
     iters: Annotated[int | None, typer.Option(help="Training iterations (default: as many as --minutes allows).")] = None,
     weight: Annotated[str, typer.Option(help="Weight of the volume rendering: neudf, or the closed-surface "
