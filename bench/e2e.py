@@ -12,9 +12,10 @@ of the ground truth beside the result from the same camera.
     .venv/bin/python bench/e2e.py                                  # the five garments, the defaults
     .venv/bin/python bench/e2e.py --meshes tshirt --weight neus_sdf   # the closed-surface baseline, same capture
     .venv/bin/python bench/e2e.py --render-only                    # cache the videos, train nothing
+    .venv/bin/python bench/e2e.py --capture-only                   # videos and their capture, train nothing
 
-``--weight neus_sdf`` reuses the capture (frames, poses, scene) of the NeUDF job of the same garment when
-it is in --work, so both methods see the same cameras.
+``--weight neus_sdf`` (or a ``--tag``) reuses the capture (frames, poses, scene) of the NeUDF job of the same
+garment when it is in --work, so every variant sees the same cameras.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from neudf_core.metrics import evaluate, load_mesh  # noqa: E402
 from neudf_core.device import resolve_device  # noqa: E402
 from neudf_core.files import atomic_write  # noqa: E402
 from worker.capture.evaluate import align_cameras, load_dataset_cameras, pose_errors  # noqa: E402
+from neudf_core.progress import Cancelled  # noqa: E402
 from worker.pipeline import JobOptions, run_pipeline  # noqa: E402
 
 MESH_DIR = ROOT.parent / "shared" / "data" / "meshes"
@@ -145,7 +147,7 @@ def picture(path: Path, gt, pred, size: int = 320) -> None:
 def run_garment(mesh_path: Path, args: argparse.Namespace, device: str) -> dict[str, Any]:
     name = mesh_path.stem
     video, true_c2w = cached_video(args.work, mesh_path, args.seed)
-    job = args.work / "jobs" / "_".join([name, args.weight] + ([args.preset] if args.preset else []))
+    job = args.work / "jobs" / "_".join([name, args.weight] + [x for x in (args.preset, args.tag) if x])
     if job.name != f"{name}_neudf":
         reuse_capture(args.work / "jobs" / f"{name}_neudf", job)
     chosen = {k: v for k, v in (("minutes", args.minutes), ("preset", args.preset)) if v is not None}
@@ -172,6 +174,22 @@ def run_garment(mesh_path: Path, args: argparse.Namespace, device: str) -> dict[
         "frames_registered": metrics.get("frames_registered"), "frames_total": metrics.get("frames_total"),
         "train": {k: stages["train"]["metrics"].get(k) for k in ("iters", "train_psnr", "stopped_by", "images")},
     }
+
+
+def capture_only(mesh_path: Path, args: argparse.Namespace, device: str) -> None:
+    """Frames, poses and the scene of a garment's NeUDF job, so that variants can train on them later."""
+    video, _ = cached_video(args.work, mesh_path, args.seed)
+    show = printer(mesh_path.stem, every_s=30)
+
+    def report(fraction: float, message: str = "", **info: Any) -> None:
+        if info.get("stage") == "train" and info.get("event") == "start":
+            raise Cancelled("capture done")
+        show(fraction, message, **info)
+
+    try:
+        run_pipeline(video, args.work / "jobs" / f"{mesh_path.stem}_neudf", JobOptions(), report, device=device)
+    except Cancelled:
+        pass
 
 
 def print_table(rows: list[dict[str, Any]]) -> None:
@@ -202,7 +220,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="Seed of the room and the camera path.")
     parser.add_argument("--work", type=Path, default=Path("/tmp/neudf-bench-e2e"), help="Videos and job folders.")
     parser.add_argument("--out", type=Path, help="JSON report (default bench/results/e2e_<weight>_<device>.json).")
+    parser.add_argument("--tag", help="Name of a variant: its own job folder, the NeUDF job's capture.")
     parser.add_argument("--render-only", action="store_true", help="Render and cache the videos, then stop.")
+    parser.add_argument("--capture-only", action="store_true", help="Videos and their capture, then stop.")
     args = parser.parse_args()
 
     device = resolve_device(args.device)
@@ -211,7 +231,11 @@ def main() -> None:
         for path in meshes:
             cached_video(args.work, path, args.seed)
         return
-    out = args.out or RESULTS / f"e2e_{args.weight}_{device}.json"
+    if args.capture_only:
+        for path in meshes:
+            capture_only(path, args, device)
+        return
+    out = args.out or RESULTS / f"e2e_{args.weight}_{device}{'_' + args.tag if args.tag else ''}.json"
     previous = json.loads(out.read_text())["rows"] if out.is_file() else []
     rows = [r for r in previous if r["mesh"] not in {p.stem for p in meshes}]
     for path in meshes:
