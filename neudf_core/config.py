@@ -62,6 +62,8 @@ class BackgroundConfig(_Block):
     n_layers: int = 8
     n_freqs: int = 10
     n_samples: int = 32
+    view_dependent: bool = Field(True, description="colour depends on the view direction (NeRF++); False: "
+                                 "the surroundings cannot paint the object behind it, view by view")
 
 
 class RendererConfig(_Block):

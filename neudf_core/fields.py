@@ -190,10 +190,10 @@ class BackgroundNeRF(nn.Module):
     coordinates (x/|x|, 1/|x|) so that infinity is a finite place."""
 
     def __init__(self, d_hidden: int = 256, n_layers: int = 8, n_freqs: int = 10, n_freqs_view: int = 4,
-                 skip_in: tuple[int, ...] = (4,)):
+                 skip_in: tuple[int, ...] = (4,), view_dependent: bool = True):
         super().__init__()
         self.encoding = PositionalEncoding(n_freqs, d_in=4)
-        self.view_encoding = PositionalEncoding(n_freqs_view)
+        self.view_encoding = PositionalEncoding(n_freqs_view) if view_dependent else None
         self.skip_in = set(skip_in)
         d_in = self.encoding.d_out
         layers = []
@@ -203,7 +203,8 @@ class BackgroundNeRF(nn.Module):
         self.layers = nn.ModuleList(layers)
         self.density = nn.Linear(d_hidden, 1)
         self.feature = nn.Linear(d_hidden, d_hidden)
-        self.rgb = nn.Sequential(nn.Linear(d_hidden + self.view_encoding.d_out, d_hidden // 2), nn.ReLU(),
+        d_view = self.view_encoding.d_out if self.view_encoding is not None else 0
+        self.rgb = nn.Sequential(nn.Linear(d_hidden + d_view, d_hidden // 2), nn.ReLU(),
                                  nn.Linear(d_hidden // 2, 3))
 
     def forward(self, x: Tensor, view_dirs: Tensor) -> tuple[Tensor, Tensor]:
@@ -216,7 +217,8 @@ class BackgroundNeRF(nn.Module):
                 h = torch.cat([inputs, h], dim=-1)
             h = torch.relu(layer(h))
         sigma = torch.relu(self.density(h)[:, 0])
-        rgb = torch.sigmoid(self.rgb(torch.cat([self.feature(h), self.view_encoding(view_dirs)], dim=-1)))
+        views = [self.view_encoding(view_dirs)] if self.view_encoding is not None else []
+        rgb = torch.sigmoid(self.rgb(torch.cat([self.feature(h), *views], dim=-1)))
         return sigma, rgb
 
 

@@ -3,7 +3,7 @@
 import torch
 
 from neudf_core.config import load_config
-from neudf_core.fields import ColorNetwork, HashGridEncoding, UDFNetwork
+from neudf_core.fields import BackgroundNeRF, ColorNetwork, HashGridEncoding, UDFNetwork
 from neudf_core.model import NeUDFModel
 
 
@@ -50,6 +50,19 @@ def test_colour_ignores_the_view_direction_only_when_told_to():
         with torch.no_grad():
             differ = not torch.equal(net(x, views_a, normals, features), net(x, views_b, normals, features))
         assert differ == view_dependent
+
+
+def test_background_colour_ignores_the_view_direction_only_when_told_to():
+    torch.manual_seed(0)
+    x = torch.nn.functional.normalize(torch.randn(100, 3), dim=-1) * (1.0 + 5.0 * torch.rand(100, 1))
+    views_a = torch.nn.functional.normalize(torch.randn(100, 3), dim=-1)
+    views_b = torch.nn.functional.normalize(torch.randn(100, 3), dim=-1)
+    for view_dependent in (True, False):
+        net = BackgroundNeRF(d_hidden=32, n_layers=3, n_freqs=4, skip_in=(2,), view_dependent=view_dependent)
+        with torch.no_grad():
+            (sigma_a, rgb_a), (sigma_b, rgb_b) = net(x, views_a), net(x, views_b)
+        assert torch.equal(sigma_a, sigma_b)
+        assert (not torch.equal(rgb_a, rgb_b)) == view_dependent
 
 
 def test_signed_network_starts_as_a_sphere_sdf():
