@@ -32,7 +32,9 @@ from rich.progress import (
 )
 from rich.text import Text
 
+from neudf_core.decimate import DEFAULT_FACES
 from neudf_core.progress import ProgressFn
+from neudf_core.texture import DEFAULT_TEXTURE_SIZE
 
 err_console = Console(stderr=True)
 
@@ -141,25 +143,42 @@ def train_command(
 
 def mesh_command(
     run: Annotated[Path, typer.Argument(help="a run folder written by `neudf train`")],
-    out: Annotated[Path, typer.Option("--out", help="mesh file: .glb, .ply or .obj")],
+    out: Annotated[Path, typer.Option("--out", help="mesh file: .glb, .ply, .obj or .usdz")],
     method: Annotated[MeshMethod, typer.Option(help="meshudf (sheets, default), spsr (masked Poisson), mc (signed fields)")] = MeshMethod.meshudf,
     resolution: Annotated[int, typer.Option(help="grid cells per axis over the unit sphere's box")] = 256,
     threshold: Annotated[float | None, typer.Option(help="UDF value counted as surface (default: per method)")] = None,
     views: Annotated[Path | None, typer.Option(help="the run's dataset folder: drop faces its cameras do not see")] = None,
     min_seen: Annotated[float, typer.Option(help="with --views: the share of cameras that must see a face")] = 0.15,
+    faces: Annotated[int, typer.Option(help=f"faces of the mesh written (quadric decimation, open boundaries kept; "
+                                            f"default {DEFAULT_FACES:,}); 0 keeps every face")] = DEFAULT_FACES,
+    texture_size: Annotated[int | None, typer.Option(help=f"with --views: side of the texture baked from the frames, "
+                                                          f"px (default {DEFAULT_TEXTURE_SIZE}); 0: vertex colours "
+                                                          "only")] = None,
     device: Annotated[Device, typer.Option(help="cpu or cuda")] = Device.cpu,
 ) -> None:
-    """Extract the open mesh with vertex colours from a trained run."""
+    """Extract the open mesh from a trained run: vertex colours, or (with --views) a texture from the frames.
+
+    A textured .obj comes with its .mtl and .png beside it; .usdz is for iOS AR Quick Look."""
     from neudf_core.extract import mesh_run
 
     if resolution < 16 or resolution > 2048:
         fail(f"--resolution must be between 16 and 2048, got {resolution}")
     if not 0.0 < min_seen <= 1.0:
         fail(f"--min-seen is a share of the cameras, in (0, 1], got {min_seen}")
+    if faces < 0 or 0 < faces < 100:
+        fail(f"--faces must be 0 (every face) or at least 100, got {faces}")
+    if texture_size is not None and texture_size > 0 and views is None:
+        fail("--texture-size needs --views DATA: the texture is baked from the dataset's frames")
+    if texture_size is None:
+        texture_size = DEFAULT_TEXTURE_SIZE if views is not None else 0
+    if not (texture_size == 0 or 64 <= texture_size <= 8192):
+        fail(f"--texture-size must be 0 (vertex colours) or between 64 and 8192, got {texture_size}")
     with user_errors(), progress_bar("meshing") as report:
         mesh = mesh_run(run, out, method=method.value, resolution=resolution, threshold=threshold, views=views,
-                        min_seen_fraction=min_seen, device=device.value, progress=report)
-    typer.echo(json.dumps({"mesh": str(out), "vertices": len(mesh.vertices), "faces": len(mesh.faces)}))
+                        min_seen_fraction=min_seen, faces=faces, texture_size=texture_size, device=device.value,
+                        progress=report)
+    typer.echo(json.dumps({"mesh": str(out), "vertices": len(mesh.vertices), "faces": len(mesh.faces),
+                           "textured": texture_size > 0}))
 
 
 def eval_command(

@@ -9,6 +9,7 @@ import torch
 import trimesh
 
 from neudf_core.dataset import load_cameras
+from neudf_core.decimate import decimate
 from neudf_core.export import SUFFIXES, export_mesh
 from neudf_core.meshing import (
     UNIT_BOUNDS, Method, NothingSeenError, color_vertices, cull_unseen, drop_small_components, extract_mesh,
@@ -16,6 +17,7 @@ from neudf_core.meshing import (
 from neudf_core.meshing.cleanup import keep_above
 from neudf_core.numerics import flush_denormals
 from neudf_core.progress import ProgressFn, null_progress, sub_progress
+from neudf_core.texture import bake_texture
 from neudf_core.trainer import load_model
 
 
@@ -30,6 +32,8 @@ def mesh_run(
     min_component_fraction: float = 0.01,
     views: str | Path | None = None,
     min_seen_fraction: float = 0.15,
+    faces: int = 0,
+    texture_size: int = 0,
     device: str = "cpu",
     progress: ProgressFn = null_progress,
 ) -> trimesh.Trimesh:
@@ -42,9 +46,15 @@ def mesh_run(
     ``views``: the run's dataset folder; faces that fewer than ``min_seen_fraction`` of its cameras see
     are dropped (:func:`cull_unseen`; 0.15 is 8 of 48 views, where culling a tube's and a pants' inner
     sheets stopped gaining); :class:`NothingSeenError` when that leaves no face.
+    ``faces`` > 0: decimated to about that many faces (:func:`decimate`); ``texture_size`` > 0 (needs
+    ``views``): a texture of that side baked from the dataset's frames (:func:`bake_texture`), and the
+    returned mesh is the textured, two-sided one.
     """
+    if texture_size > 0 and views is None:
+        raise ValueError("a texture is baked from the frames: give the run's dataset folder (views)")
     if Path(out_path).suffix.lower() not in SUFFIXES:
         raise ValueError(f"unknown mesh format {Path(out_path).suffix!r}: use one of {', '.join(SUFFIXES)}")
+    report = sub_progress(progress, 0.0, 0.6) if texture_size > 0 else progress  # the bake takes the rest
     flush_denormals()
     model = load_model(run_dir, device)
     model.eval()
@@ -62,13 +72,13 @@ def mesh_run(
     mesh = extract_mesh(
         model.udf, method=method, resolution=resolution, bounds=UNIT_BOUNDS, threshold=threshold,
         grad_fn=grad_fn, min_component_faces=min_component_faces, min_component_fraction=min_component_fraction,
-        device=device, progress=sub_progress(progress, 0.0, 0.85),
+        device=device, progress=sub_progress(report, 0.0, 0.85),
     )
     floor_y = model.cfg.data.floor_y
     if floor_y is not None:  # training rendered nothing of the object below the floor: what is there is a guess
         mesh = keep_above(mesh, floor_y)
     if cameras is not None:
-        progress(0.85, "dropping what no camera sees")
+        report(0.85, "dropping what no camera sees")
         info = mesh.metadata["meshing"]
         faces_before = len(mesh.faces)
         mesh = cull_unseen(mesh, cameras, min_seen_fraction, tol=2.0 * info["voxel"])
@@ -79,7 +89,10 @@ def mesh_run(
         mesh.metadata["meshing"] = {**info, "views": str(views), "cameras": len(cameras),
                                     "min_seen_fraction": min_seen_fraction,
                                     "faces_unseen": faces_before - len(mesh.faces)}
-    color_vertices(mesh, model.color, device=device, progress=sub_progress(progress, 0.9, 0.98))
+    color_vertices(mesh, model.color, device=device, progress=sub_progress(report, 0.9, 0.98))
+    mesh = decimate(mesh, faces)
+    if texture_size > 0:
+        mesh, _ = bake_texture(mesh, views, texture_size, progress=sub_progress(progress, 0.6, 0.99))
     export_mesh(mesh, out_path)
     progress(1.0, f"wrote {out_path}")
     return mesh

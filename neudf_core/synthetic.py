@@ -172,8 +172,12 @@ def render(
     cameras: list[Camera],
     background: Background = "white",
     seed: int = 0,
+    lit: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Ray-cast ``scene`` from each camera. Returns images uint8 (N, H, W, 3) and masks bool (N, H, W)."""
+    """Ray-cast ``scene`` from each camera. Returns images uint8 (N, H, W, 3) and masks bool (N, H, W).
+
+    ``lit=False`` shows the surface colours as they are (a baked texture already holds the light it was
+    photographed under)."""
     intersector = trimesh.ray.ray_pyembree.RayMeshIntersector(scene)
     images, masks = [], []
     for cam in cameras:
@@ -185,7 +189,7 @@ def render(
             rgb = np.full((len(dirs), 3), 1.0 if background == "white" else 0.0)
         if len(ray):
             albedo = _surface_colour(scene, tri, loc, seed)
-            shade = 0.55 + 0.45 * np.abs(scene.face_normals[tri] @ _LIGHT_DIR)
+            shade = 0.55 + 0.45 * np.abs(scene.face_normals[tri] @ _LIGHT_DIR) if lit else np.ones(len(tri))
             rgb[ray] = albedo * shade[:, None]
         mask = np.zeros(len(dirs), bool)
         mask[ray] = True

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import FileResponse, JSONResponse
@@ -24,6 +24,7 @@ from service.auth import TokenAuth
 from service.jobs import JobRejected, JobService
 from service.models import Health, HealthPublic, JobList, JobPublic, Live
 from service.settings import Settings, get_settings
+from worker.pipeline import JobOptions
 from worker.tasks import LIVE_ARTIFACTS
 
 router = APIRouter(prefix="/api")
@@ -34,7 +35,8 @@ MAX_FORM_PARTS = 32
 FORM_OVERHEAD_BYTES = 64 * 1024  # room for the form's fields and boundaries beside the file
 MAX_OFFSET = 10**9
 MEDIA_TYPES = {".glb": "model/gltf-binary", ".ply": "application/octet-stream", ".png": "image/png",
-               ".json": "application/json", ".jsonl": "application/x-ndjson"}
+               ".json": "application/json", ".jsonl": "application/x-ndjson", ".obj": "model/obj",
+               ".mtl": "model/mtl", ".usdz": "model/vnd.usdz+zip"}
 
 
 def get_service(request: Request) -> JobService:
@@ -154,30 +156,25 @@ class _UploadSink:
             self._out.close()
 
 
-_UPLOAD_BODY = {
-    "requestBody": {
-        "required": True,
-        "content": {"multipart/form-data": {"schema": {
-            "type": "object",
-            "required": ["file"],
-            "properties": {
-                "file": {"type": "string", "format": "binary", "description": "The video (MP4, MOV, ...)"},
-                "preset": {"type": "string", "description": "quick, fast, gpu or paper (default: the worker's device's)"},
-                "minutes": {"type": "number", "description": "Training budget in minutes"},
-                "weight": {"type": "string", "description": "neudf (default), neus_sdf or neus_abs"},
-                "frames": {"type": "integer", "description": "Frames to pick from the video"},
-                "iters": {"type": "integer", "description": "Training iterations"},
-                "max_size": {"type": "integer", "description": "Longest side of frames given to SIFT"},
-                "mesh_method": {"type": "string", "description": "meshudf, spsr or mc"},
-                "mesh_resolution": {"type": "integer", "description": "Grid resolution of mesh extraction"},
-                "mesh_threshold": {"type": "number", "description": "UDF level under which a face counts as surface"},
-                "mesh_min_faces": {"type": "integer", "description": "Smaller connected pieces are dropped (default 32)"},
-                "mesh_min_seen": {"type": "number", "description": "Share of the cameras that must see a face "
-                                  "(default 0.15; 0 keeps every face)"},
-            },
-        }}},
-    }
-}
+def _form_field(schema: dict[str, Any]) -> dict[str, Any]:
+    """One option's JSON schema as a form field: an optional one is simply left out, so its null branch goes."""
+    field = {k: v for k, v in schema.items() if k != "anyOf" and not (k == "default" and v is None)}
+    branches = [b for b in schema.get("anyOf", []) if b.get("type") != "null"]
+    if len(branches) == 1:
+        field.update(branches[0])
+    return field
+
+
+def upload_form_schema() -> dict[str, Any]:
+    """The multipart body of ``POST /api/jobs``: ``file`` and every field of :class:`JobOptions`, as the model
+    describes them (a new option shows in the API docs by itself)."""
+    options = JobOptions.model_json_schema()
+    properties = {"file": {"type": "string", "format": "binary", "description": "The video (MP4, MOV, ...)"}}
+    properties.update({name: _form_field(field) for name, field in options["properties"].items()})
+    return {"type": "object", "required": ["file"], "properties": properties}
+
+
+_UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": upload_form_schema()}}}}
 
 
 @router.post("/jobs", status_code=201, response_model=JobPublic, openapi_extra=_UPLOAD_BODY,
@@ -248,7 +245,7 @@ def get_job(job_id: str, service: ServiceDep, owner: OwnerDep) -> JobPublic:
 @router.get("/jobs/{job_id}/artifacts/{name:path}", responses={400: {}, 404: {}}, tags=["jobs"],
             response_class=FileResponse)
 def get_artifact(job_id: str, name: str, service: ServiceDep, owner: OwnerDep) -> Response:
-    """A file of the job, once whole: mesh.glb, mesh.ply, preview.png, loss.png, frames.png, cameras.png, ...
+    """A file of the job, once whole: mesh.glb, mesh.obj (+ mesh.mtl, mesh.png), mesh.usdz, mesh.ply, preview.png, ...
     (metrics.jsonl while training: the lines written so far)."""
     path = service.artifact(job_id, name, owner)
     media_type = MEDIA_TYPES.get(path.suffix, "application/octet-stream")

@@ -12,6 +12,7 @@ from pathlib import Path
 import av
 import numpy as np
 import trimesh
+from PIL import Image
 
 from neudf_core import synthetic
 from neudf_core.synthetic import blob_texture
@@ -84,3 +85,75 @@ def encode_video(path: Path, images: np.ndarray, fps: int = 24, *, codec: str = 
 def noise_frames(n: int, width: int = 64, height: int = 48, seed: int = 0) -> np.ndarray:
     """Independent random frames: sharp, decodable, and with nothing in common between them."""
     return np.random.default_rng(seed).integers(0, 256, size=(n, height, width, 3), dtype=np.uint8)
+
+
+# -- textured scenes for the download (texture bake, export) ------------------------------------------------
+SHEET_HALF = 0.6
+SHEET_GAP = 0.006  # between the front and the back sheet of a rendered two-sided sheet
+
+
+def two_sided_texture(cells: int = 32, px_per_cell: int = 8, seed: int = 0) -> Image.Image:
+    """Left half: a check of random warm colours, ``cells`` x ``cells``; right half: blue-green stripes
+    ``cells`` across. Each side's pattern is finer than a coarse mesh's vertices can hold."""
+    rng = np.random.default_rng(seed)
+    side = cells * px_per_cell
+    warm = rng.uniform([0.55, 0.1, 0.0], [1.0, 0.6, 0.3], size=(cells, cells, 3))
+    front = np.repeat(np.repeat(warm, px_per_cell, 0), px_per_cell, 1)
+    cool = rng.uniform([0.0, 0.3, 0.5], [0.3, 0.8, 1.0], size=(cells, 3))
+    back = np.broadcast_to(np.repeat(cool, px_per_cell, 0)[None], (side, side, 3))
+    return Image.fromarray((np.concatenate([front, back], axis=1) * 255).round().astype(np.uint8))
+
+
+def sheet_grid(n: int, y: float = 0.0) -> trimesh.Trimesh:
+    """A flat square sheet in the xz plane, 2 * SHEET_HALF across, n x n quads, its front facing +y."""
+    u = np.linspace(-SHEET_HALF, SHEET_HALF, n + 1)
+    x, z = np.meshgrid(u, u)
+    sheet = synthetic._grid_mesh(x, np.full_like(x, y), z)
+    if sheet.face_normals[0, 1] < 0:
+        sheet.faces = sheet.faces[:, ::-1]
+    return sheet
+
+
+def two_sided_sheet_scene(texture: Image.Image, n: int = 8) -> trimesh.Trimesh:
+    """What a camera sees of a sheet whose sides differ: a front sheet (texture's left half) just above a back
+    sheet (right half); the ray caster meets the front from above and the back from below."""
+    top, bottom = sheet_grid(n, SHEET_GAP / 2), sheet_grid(n, -SHEET_GAP / 2)
+    uv = (top.vertices[:, [0, 2]] + SHEET_HALF) / (2 * SHEET_HALF)
+    uv_top = np.stack([uv[:, 0] * 0.5, uv[:, 1]], 1)
+    uv_bottom = np.stack([0.5 + uv[:, 0] * 0.5, uv[:, 1]], 1)
+    bottom.faces = bottom.faces[:, ::-1]
+    scene = trimesh.Trimesh(np.concatenate([top.vertices, bottom.vertices]),
+                            np.concatenate([top.faces, bottom.faces + len(top.vertices)]), process=False)
+    scene.visual = trimesh.visual.TextureVisuals(uv=np.concatenate([uv_top, uv_bottom]), image=texture)
+    return scene
+
+
+def textured_sheet_dataset(out: Path, n_views: int = 40, size: int = 128, cells: int = 32,
+                           grid: int = 12) -> tuple[Path, trimesh.Trimesh]:
+    """A NeuS dataset of :func:`two_sided_sheet_scene` from cameras all round it, and the sheet to bake: one
+    layer, ``grid`` x ``grid`` quads in the dataset's unit sphere, with vertex colours of the front pattern
+    as the sheet's light shows it (the best a vertex can hold of it)."""
+    texture = two_sided_texture(cells)
+    scene = two_sided_sheet_scene(texture)
+    synthetic.write_neus_dataset(out, scene, n_views=n_views, size=size, background="white", with_masks=True)
+    to_unit = np.linalg.inv(synthetic.unit_sphere_transform(scene))
+    sheet = sheet_grid(grid)
+    uv = (sheet.vertices[:, [0, 2]] + SHEET_HALF) / (2 * SHEET_HALF)
+    pixels = np.asarray(texture, np.float64) / 255.0
+    h, w = pixels.shape[:2]
+    col = np.clip((uv[:, 0] * 0.5 * (w - 1)).round().astype(int), 0, w - 1)
+    row = np.clip(((1 - uv[:, 1]) * (h - 1)).round().astype(int), 0, h - 1)
+    shade = 0.55 + 0.45 * abs(synthetic._LIGHT_DIR[1])
+    sheet.visual.vertex_colors = (pixels[row, col] * shade * 255).round().astype(np.uint8)
+    sheet.apply_transform(to_unit)
+    return out, sheet
+
+
+def holed_wavy_sheet(n: int) -> trimesh.Trimesh:
+    """The synthetic wavy sheet (n x n quads) with a round hole cut out along the grid: two boundary loops,
+    their rims jagged as a mesh cut from a distance field has them."""
+    sheet = synthetic.procedural_mesh("wavy_sheet", subdivisions=n)
+    centres = sheet.triangles_center
+    sheet.update_faces(np.hypot(centres[:, 0], centres[:, 2]) > 0.2)
+    sheet.remove_unreferenced_vertices()
+    return sheet

@@ -37,8 +37,9 @@ ARTIFACTS = Path(__file__).parent / "artifacts"
 # No culling by the cameras either (mesh_min_seen 0): those fragments lie anywhere, and in one full run of
 # four on 2026-12-03 no camera saw any of them ("no face is seen by 5% of the 17 cameras").
 # (A real surface needs hundreds of iterations; these tests check the plumbing, not the quality.)
+# A small texture keeps the export stage's bake to a second.
 QUICK_JOB = {"preset": "quick", "iters": "10", "frames": "30", "mesh_resolution": "64", "mesh_threshold": "0.25",
-             "mesh_min_faces": "1", "mesh_min_seen": "0"}
+             "mesh_min_faces": "1", "mesh_min_seen": "0", "texture_size": "256"}
 # Fast liveness: a killed worker's job is queued again after a few seconds.
 FAST_LIVENESS = {"NEUDF_HEARTBEAT_S": "1", "NEUDF_STALE_AFTER_S": "5", "NEUDF_PROGRESS_INTERVAL_S": "0.2"}
 

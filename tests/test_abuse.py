@@ -106,7 +106,7 @@ class HealthWatch:
 
 def page_call(client: httpx.Client, path: str, headers: dict[str, str] | None = None) -> httpx.Response:
     """Ask the page's submit handler to take a server file, the way an API client of Gradio would."""
-    data = [{"path": path, "meta": FILE_META}, "quick", None, None, None, None, None, None, None]
+    data = [{"path": path, "meta": FILE_META}, "quick", None, None, None, None, None, None, None, None, None]
     return client.post("/gradio_api/call/submit", json={"data": data}, headers=headers)
 
 
@@ -211,7 +211,7 @@ def test_page_files_follow_their_job(guarded: ServeProcess, tiny_video: Path) ->
     from gradio_client import Client, handle_file
 
     page = Client(guarded.url, headers=ALICE, verbose=False, download_files=False, analytics_enabled=False)
-    notice = page.predict(handle_file(str(tiny_video)), "quick", None, None, None, None, None, None, None,
+    notice = page.predict(handle_file(str(tiny_video)), "quick", None, None, None, None, None, None, None, None, 256,
                           api_name="/submit")
     assert "queued" in str(notice)
     with httpx.Client(base_url=guarded.url, timeout=30, headers=ALICE) as client:

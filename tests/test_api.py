@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 from service.app import create_app
 from service.settings import Settings
 from tests.helpers import QUICK_JOB, assert_monotonic_progress, assert_valid_glb, finished, wait_job
-from worker.pipeline import STAGE_NAMES
+from worker.pipeline import STAGE_NAMES, JobOptions
 from worker.store import JobStore
 
 
@@ -247,6 +247,18 @@ def test_openapi_lists_the_routes(make_client: Callable) -> None:
     assert client.get("/docs").status_code == 200
 
 
+def test_openapi_form_lists_every_job_option(make_client: Callable) -> None:
+    """The upload form in the API docs comes from JobOptions: a new option shows there by itself."""
+    client, _ = make_client()
+    body = client.get("/openapi.json").json()["paths"]["/api/jobs"]["post"]["requestBody"]
+    form = body["content"]["multipart/form-data"]["schema"]
+    assert set(form["properties"]) == {"file"} | set(JobOptions.model_fields)
+    assert form["required"] == ["file"] and form["properties"]["file"]["format"] == "binary"
+    faces = form["properties"]["faces"]
+    assert faces["type"] == "integer" and faces["default"] == JobOptions.model_fields["faces"].default
+    assert form["properties"]["mesh_method"]["enum"] == ["meshudf", "spsr", "mc"]  # an optional one, without null
+
+
 # -- the embedded default, end to end ------------------------------------------------------------------------
 @pytest.mark.slow
 def test_embedded_video_to_glb(embedded_server: Any, tiny_video: Path) -> None:
@@ -264,7 +276,8 @@ def test_embedded_video_to_glb(embedded_server: Any, tiny_video: Path) -> None:
         assert all(s["state"] == "done" and s["runs"] == 1 and s["seconds"] is not None for s in job["stages"])
         assert job["metrics"]["frames_registered"] >= 8 and job["metrics"]["mesh_faces"] > 0
         assert "mesh_faces_unseen" not in job["metrics"]  # mesh_min_seen 0: meshed without the cameras
-        for name in ("mesh.glb", "mesh.ply", "preview.png", "loss.png", "frames.png", "cameras.png", "metrics.json"):
+        for name in ("mesh.glb", "mesh.obj", "mesh.mtl", "mesh.png", "mesh.usdz", "mesh.ply", "preview.png",
+                     "loss.png", "frames.png", "cameras.png", "metrics.json"):
             assert name in job["artifacts"], name
         glb = client.get(job["artifacts"]["mesh.glb"])
         assert glb.status_code == 200 and glb.headers["content-type"] == "model/gltf-binary"

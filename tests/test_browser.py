@@ -58,7 +58,7 @@ def test_page_uploads_shows_progress_and_loads_the_glb(embedded_server: Any, tin
     page.click("#neudf-options button, #neudf-options >> text=Options")  # open the options
     fields = {"iters": "Iterations", "frames": "Frames", "mesh_resolution": "Mesh resolution",
               "mesh_threshold": "Mesh threshold", "mesh_min_faces": "Smallest piece (faces)",
-              "mesh_min_seen": "Share of cameras that must see a face"}
+              "mesh_min_seen": "Share of cameras that must see a face", "texture_size": "Texture size (px)"}
     for key, label in fields.items():
         page.get_by_label(label).fill(QUICK_JOB[key])
     page.click("#neudf-submit")

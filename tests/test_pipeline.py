@@ -11,7 +11,8 @@ from neudf_core.trainer import BUDGET_MAX_ITERS
 from worker.pipeline import DEFAULT_TRAIN_MINUTES, JobContext, JobOptions, run_pipeline
 
 # The plumbing options of tests/conftest.py's QUICK_JOB, without its iteration count: the budget alone stops.
-TINY = {"frames": 30, "mesh_resolution": 64, "mesh_threshold": 0.25, "mesh_min_faces": 1, "mesh_min_seen": 0.0}
+TINY = {"frames": 30, "mesh_resolution": 64, "mesh_threshold": 0.25, "mesh_min_faces": 1, "mesh_min_seen": 0.0,
+        "texture_size": 256}
 
 
 def test_defaults_follow_the_device(tmp_path):

@@ -1,8 +1,8 @@
 """The web page: Gradio components mounted into the FastAPI app, talking to the same JobService as /api.
 
 Upload (Gradio's file widget shows the upload's progress), the job list, the selected job's state with
-a progress bar and its stages, the chosen frames, the camera path, the loss curve, the GLB in Gradio's
-3-D viewer and a download button. A timer polls the job store once a second. Everything the page needs
+a progress bar and its stages, the chosen frames, the camera path, the loss curve, the (textured) GLB in
+Gradio's 3-D viewer with its face count and file sizes, and the download in every format. A timer polls the job store once a second. Everything the page needs
 ships inside the gradio wheel: no CDN, no internet.
 
 The page shows a job's files straight from its folder (the jobs folder is one of Gradio's static paths),
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import html
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import gradio as gr
@@ -23,7 +24,7 @@ from fastapi import FastAPI, Request
 from gradio.data_classes import FileData
 
 from service.auth import TokenAuth
-from service.jobs import JobRecord, JobRejected, JobService
+from service.jobs import JobOptions, JobRecord, JobRejected, JobService
 from web.guard import PageGuard, add_login_routes, client_of, page_token, page_upload
 
 POLL_S = 1.0
@@ -77,6 +78,27 @@ def _status_html(job: JobRecord | None) -> str:
     )
 
 
+DOWNLOADS = ("mesh.glb", "mesh.obj", "mesh.mtl", "mesh.png", "mesh.usdz", "mesh.ply")
+
+
+def _size(nbytes: int) -> str:
+    return f"{nbytes / 2**20:.1f} MB" if nbytes >= 2**20 else f"{nbytes / 2**10:.0f} KB"
+
+
+def _download_html(job: JobRecord, files: dict[str, str]) -> str:
+    """The downloaded mesh in figures: its faces (before decimation too), the texture, each file's size."""
+    if not files:
+        return ""
+    faces, before = job.metrics.get("mesh_faces"), job.metrics.get("mesh_faces_before")
+    shape = f"{faces:,} faces" if faces is not None else ""
+    if faces is not None and before is not None and before != faces:
+        shape += f" (decimated from {before:,})"
+    texture = job.metrics.get("texture_size")
+    shape += f", {texture} px texture" if texture else ", vertex colours"
+    sizes = " &middot; ".join(f"{name} {_size(Path(path).stat().st_size)}" for name, path in files.items())
+    return f"<div id='neudf-download-info'><p><b>Mesh:</b> {html.escape(shape)}</p><p>{sizes}</p></div>"
+
+
 def _jobs_table(jobs: list[JobRecord]) -> pd.DataFrame:
     return pd.DataFrame(
         [[j.id[:8], j.input_name, j.state, j.stage or "", f"{100 * j.progress:.0f}%", j.created_at.strftime("%m-%d %H:%M")]
@@ -103,7 +125,7 @@ def build_page(service: JobService) -> gr.Blocks:
 
     def submit(file: str | None, preset: str, minutes: float | None, frames: float | None, iters: float | None,
                resolution: float | None, threshold: float | None, min_faces: float | None, min_seen: float | None,
-               request: gr.Request) -> tuple[str | None, str, None]:
+               faces: float | None, texture_size: float | None, request: gr.Request) -> tuple[str | None, str, None]:
         if not file:
             raise gr.Error("Choose a video first.")
         fields = {"preset": preset} if preset else {}
@@ -115,8 +137,9 @@ def build_page(service: JobService) -> gr.Blocks:
             fields["minutes"] = str(float(minutes))
         if threshold:
             fields["mesh_threshold"] = str(float(threshold))
-        if min_seen is not None:  # 0 is a choice here: keep every face
-            fields["mesh_min_seen"] = str(float(min_seen))
+        for key, value in (("mesh_min_seen", min_seen), ("faces", faces), ("texture_size", texture_size)):
+            if value is not None:  # 0 is a choice here: keep every face, no texture
+                fields[key] = str(float(value)) if key == "mesh_min_seen" else str(int(value))
         try:
             upload = page_upload(file)
             job = service.create_from_file(upload, upload.name, fields, owner_of(request))
@@ -151,7 +174,8 @@ def build_page(service: JobService) -> gr.Blocks:
         table, ids = _jobs_table(jobs), [j.id for j in jobs]
         status = _status_html(job)
         if job is None:
-            return table, ids, status, None, None, None, None, gr.DownloadButton(value=None, visible=False), {}
+            return (table, ids, status, None, None, None, None, gr.DownloadButton(value=None, visible=False), "", None,
+                    {})
         # Heavy widgets change only when their file did: a timer tick must not reload the 3-D view.
         names = set(job.artifacts)
         signature = {"job": job.id, "artifacts": sorted(names), "loss_rows": None}
@@ -168,8 +192,11 @@ def build_page(service: JobService) -> gr.Blocks:
         model_path = _artifact_path(service, job.id, "mesh.glb", owner) if not same_files else None
         model = gr.skip() if same_files else model_path
         download = keep_or(lambda: gr.DownloadButton(value=model_path, visible=model_path is not None))
+        files = {} if same_files else {n: p for n in DOWNLOADS if (p := _artifact_path(service, job.id, n, owner))}
+        info = gr.skip() if same_files else _download_html(job, files)
+        others = gr.skip() if same_files else (list(files.values()) or None)
         loss_out = gr.skip() if same_job and shown.get("loss_rows") == signature["loss_rows"] else loss
-        return table, ids, status, frames, cameras, loss_out, model, download, signature
+        return table, ids, status, frames, cameras, loss_out, model, download, info, others, signature
 
     theme = gr.themes.Default(font=FONTS, font_mono=MONO)
     # Page uploads not turned into a job go after an hour.
@@ -204,6 +231,12 @@ def build_page(service: JobService) -> gr.Blocks:
                         min_faces = gr.Number(label="Smallest piece (faces)", value=None, precision=0, minimum=0)
                         min_seen = gr.Number(label="Share of cameras that must see a face", value=None, minimum=0,
                                              maximum=1)
+                    with gr.Row():
+                        faces = gr.Number(label="Faces of the download", value=None, precision=0, minimum=0,
+                                          info=f"empty: {JobOptions.model_fields['faces'].default:,}; 0: every face")
+                        texture_size = gr.Number(label="Texture size (px)", value=None, precision=0, minimum=0,
+                                                 info=f"empty: {JobOptions.model_fields['texture_size'].default}; "
+                                                      "0: vertex colours only")
                 submit_btn = gr.Button("Reconstruct", variant="primary", elem_id="neudf-submit")
                 notice = gr.Markdown(elem_id="neudf-notice")
                 jobs = gr.Dataframe(label="Jobs (click one)", interactive=False, elem_id="neudf-jobs", max_height=320)
@@ -215,13 +248,17 @@ def build_page(service: JobService) -> gr.Blocks:
                                        clear_color=(0.95, 0.95, 0.95, 1.0))
                 with gr.Row():
                     download = gr.DownloadButton("Download GLB", visible=False, elem_id="neudf-download")
+                download_info = gr.HTML("", elem_id="neudf-download-figures")
+                downloads = gr.File(label="All formats (GLB, OBJ + MTL + PNG, USDZ for iPhone AR, PLY)",
+                                    file_count="multiple", interactive=False, elem_id="neudf-downloads")
                 with gr.Row():
                     loss = gr.LinePlot(x="iter", y="loss", label="Loss", elem_id="neudf-loss", height=240)
                     cameras = gr.Image(label="Camera path", elem_id="neudf-cameras", interactive=False)
                 gallery = gr.Gallery(label="Chosen frames", elem_id="neudf-frames", columns=8, height=220)
 
-        outputs = [jobs, job_ids, status, gallery, cameras, loss, model, download, shown]
-        submit_btn.click(submit, [video, preset, minutes, frames, iters, resolution, threshold, min_faces, min_seen],
+        outputs = [jobs, job_ids, status, gallery, cameras, loss, model, download, download_info, downloads, shown]
+        submit_btn.click(submit, [video, preset, minutes, frames, iters, resolution, threshold, min_faces, min_seen,
+                                  faces, texture_size],
                          [job_id, notice, video]).then(refresh, [job_id, shown], outputs)
         cancel_btn.click(cancel, [job_id], [notice])
         jobs.select(pick, [job_ids], [job_id]).then(refresh, [job_id, shown], outputs)

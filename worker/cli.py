@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from neudf_core.cli import fail, progress_bar
+from neudf_core.decimate import DEFAULT_FACES
+from neudf_core.texture import DEFAULT_TEXTURE_SIZE
 from worker.pipeline import DEFAULT_TRAIN_MINUTES
 
 if TYPE_CHECKING:  # the commands import what they need when they run: `neudf --help` stays fast
@@ -24,7 +26,7 @@ if TYPE_CHECKING:  # the commands import what they need when they run: `neudf --
 
 __all__ = ["register", "capture", "reconstruct", "worker", "main"]
 
-MESH_SUFFIXES = (".glb", ".ply", ".obj")
+MESH_SUFFIXES = (".glb", ".ply", ".obj", ".usdz")
 
 
 def capture(
@@ -71,7 +73,8 @@ def capture(
 
 def reconstruct(
     video: Annotated[Path, typer.Argument(help="The video (MP4, MOV, ...).")],
-    out: Annotated[Path, typer.Option("--out", help="The mesh to write: .glb, .ply or .obj.")],
+    out: Annotated[Path, typer.Option("--out", help="The mesh to write: .glb, .obj (with .mtl and .png), .usdz "
+                                                    "(iOS AR) or .ply (vertex colours).")],
     preset: Annotated[str | None, typer.Option(help="Training preset: quick, fast, gpu or paper (default: quick on "
                                                     "a CPU, gpu on CUDA).")] = None,
     minutes: Annotated[float | None, typer.Option(help=f"Training budget in minutes (default {DEFAULT_TRAIN_MINUTES:g} unless --iters is given); "
@@ -87,6 +90,10 @@ def reconstruct(
     mesh_threshold: Annotated[float | None, typer.Option(help="UDF level under which a face counts as surface.")] = None,
     mesh_min_faces: Annotated[int | None, typer.Option(help="Connected pieces with fewer faces are dropped (default 32).")] = None,
     mesh_min_seen: Annotated[float | None, typer.Option(help="Share of the cameras that must see a face (default 0.15; 0 keeps every face).")] = None,
+    faces: Annotated[int, typer.Option(help="Faces of the mesh written (quadric decimation, open boundaries kept); "
+                                            "0 keeps every face.")] = DEFAULT_FACES,
+    texture_size: Annotated[int, typer.Option(help="Side of the texture baked from the frames, px; 0: vertex "
+                                                   "colours only.")] = DEFAULT_TEXTURE_SIZE,
 ) -> None:
     """Run the whole pipeline on a video without a service: frames, poses, training, mesh, export."""
     from pydantic import ValidationError
@@ -106,7 +113,8 @@ def reconstruct(
     try:
         options = JobOptions(preset=preset, minutes=minutes, iters=iters, weight=weight, frames=frames, mesh_resolution=mesh_resolution,
                              mesh_method=mesh_method, mesh_threshold=mesh_threshold,
-                             mesh_min_faces=mesh_min_faces, mesh_min_seen=mesh_min_seen)
+                             mesh_min_faces=mesh_min_faces, mesh_min_seen=mesh_min_seen, faces=faces,
+                             texture_size=texture_size)
     except ValidationError as exc:
         first = exc.errors()[0]
         fail(f"{'.'.join(map(str, first['loc']))}: {first['msg']}")
@@ -134,12 +142,15 @@ def reconstruct(
 def _write_mesh(export_dir: Path, out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     suffix = out.suffix.lower()
-    if suffix in (".glb", ".ply"):
+    if suffix != ".obj":
         shutil.copyfile(export_dir / f"mesh{suffix}", out)
         return
     import trimesh
 
-    trimesh.load(export_dir / "mesh.ply", process=False, force="mesh").export(out)
+    from neudf_core.export import export_mesh
+
+    # written again rather than copied: the OBJ names its .mtl and the .mtl its .png, after OUT's name
+    export_mesh(trimesh.load(export_dir / "mesh.obj", process=False, force="mesh"), out)
 
 
 def load_settings(cls: type[QueueSettings] | None = None, **overrides: Any) -> QueueSettings:

@@ -1,8 +1,14 @@
-"""Export stage: the mesh as GLB and PLY, preview pictures and the job's figures in metrics.json.
+"""Export stage: the mesh a user downloads, preview pictures and the job's figures in metrics.json.
 
-Pictures: ``preview.png`` (the mesh ray-cast with its vertex colours from four sides), ``loss.png`` (loss
-and PSNR against iteration from the run's metrics.jsonl) and ``frames.png`` (the chosen frames, written
-as soon as the frames stage ends so the page can show them early).
+The mesh stage's mesh is decimated to the job's ``faces`` (:mod:`neudf_core.decimate`) and, unless
+``texture_size`` is 0, textured from the job's frames (:mod:`neudf_core.texture`). Files: ``mesh.glb``
+(textured, or vertex colours without a texture), ``mesh.obj`` with ``mesh.mtl`` and ``mesh.png`` beside it
+(the texture), ``mesh.usdz`` (iOS AR Quick Look, in metres) and ``mesh.ply`` (the decimated mesh with its
+vertex colours, one side).
+
+Pictures: ``preview.png`` (the downloaded mesh ray-cast from four sides), ``loss.png`` (loss and PSNR
+against iteration from the run's metrics.jsonl) and ``frames.png`` (the chosen frames, written as soon as
+the frames stage ends so the page can show them early).
 """
 
 from __future__ import annotations
@@ -16,7 +22,11 @@ import numpy as np
 import trimesh
 from PIL import Image
 
-from neudf_core.progress import ProgressFn, null_progress
+from neudf_core.decimate import DEFAULT_FACES, decimate
+from neudf_core.export import USDZ_METRES_PER_UNIT, export_mesh
+from neudf_core.files import write_json_atomic
+from neudf_core.progress import ProgressFn, null_progress, sub_progress
+from neudf_core.texture import DEFAULT_TEXTURE_SIZE, bake_texture
 
 
 def write_frames_montage(image_dir: Path, out: Path, *, max_frames: int = 24, thumb: int = 160) -> Path | None:
@@ -84,7 +94,7 @@ def write_loss_curve(metrics_jsonl: Path, out: Path) -> Path | None:
 
 
 def write_preview(mesh: trimesh.Trimesh, out: Path, *, size: int = 256, views: int = 4) -> Path | None:
-    """Ray-cast the mesh with its vertex colours from ``views`` directions around it, side by side."""
+    """Ray-cast the mesh with its texture or vertex colours from ``views`` directions around it, side by side."""
     if len(mesh.faces) == 0:
         return None
     from neudf_core.synthetic import Camera, intrinsics, look_at, render
@@ -99,7 +109,8 @@ def write_preview(mesh: trimesh.Trimesh, out: Path, *, size: int = 256, views: i
         azimuth = 2 * math.pi * i / views + math.pi / 8
         eye = centre + distance * np.array([math.sin(azimuth) * 0.9, 0.35, math.cos(azimuth) * 0.9])
         cams.append(Camera(K.copy(), look_at(eye, centre), size, size))
-    scene = mesh if mesh.visual.kind == "vertex" else trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    coloured = mesh.visual.kind in ("vertex", "texture")
+    scene = mesh if coloured else trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
     images, _ = render(scene, cams, background="white")
     panel = np.concatenate(list(images), axis=1)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -124,37 +135,50 @@ def mesh_figures(mesh: trimesh.Trimesh) -> dict[str, Any]:
     }
 
 
-def _save_glb(mesh: trimesh.Trimesh, path: Path) -> None:
-    try:
-        from neudf_core.export import export_mesh
-    except ImportError:  # the meshing module not landed yet: trimesh's own writer
-        mesh.export(path)
-        return
-    export_mesh(mesh, path)
+def _write_download(mesh: trimesh.Trimesh, textured: trimesh.Trimesh | None, out_dir: Path) -> dict[str, int]:
+    """The download's files; returns their sizes in bytes. (The pipeline removes an earlier run's files, e.g. the
+    OBJ's texture when a job is exported again without one.)"""
+    shown = textured if textured is not None else mesh
+    for name in ("mesh.glb", "mesh.obj", "mesh.usdz"):
+        export_mesh(shown, out_dir / name)
+    export_mesh(mesh, out_dir / "mesh.ply")
+    return {path.name: path.stat().st_size for path in sorted(out_dir.glob("mesh.*"))}
 
 
-def export_job(mesh_file: Path, data_dir: Path, run_dir: Path, out_dir: Path,
-               progress: ProgressFn = null_progress) -> dict[str, Any]:
-    """Write mesh.glb, mesh.ply, preview.png, loss.png and metrics.json into ``out_dir``."""
+def export_job(mesh_file: Path, data_dir: Path, run_dir: Path, out_dir: Path, *, faces: int = DEFAULT_FACES,
+               texture_size: int = DEFAULT_TEXTURE_SIZE, progress: ProgressFn = null_progress) -> dict[str, Any]:
+    """Decimate to ``faces`` (0: keep all), bake a ``texture_size`` px texture from ``data_dir``'s frames (0: vertex
+    colours only), write the download (mesh.glb, .obj, .mtl, .png, .usdz, .ply), preview.png, loss.png and
+    metrics.json."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    mesh = trimesh.load(mesh_file, process=False, force="mesh")
-    progress(0.1, "writing GLB and PLY")
-    _save_glb(mesh, out_dir / "mesh.glb")
-    mesh.export(out_dir / "mesh.ply")
-    progress(0.4, "rendering the preview")
-    write_preview(mesh, out_dir / "preview.png")
-    progress(0.8, "plotting the loss curve")
+    dense = trimesh.load(mesh_file, process=False, force="mesh")
+    progress(0.02, f"decimating {len(dense.faces)} faces to {faces}" if faces else "keeping every face")
+    mesh = decimate(dense, faces)
+    textured, texture = None, {}
+    if texture_size > 0:
+        textured, texture = bake_texture(mesh, data_dir, texture_size, progress=sub_progress(progress, 0.05, 0.8))
+    progress(0.8, "writing GLB, OBJ, USDZ and PLY")
+    sizes = _write_download(mesh, textured, out_dir)
+    progress(0.88, "rendering the preview")
+    write_preview(textured if textured is not None else mesh, out_dir / "preview.png")
+    progress(0.95, "plotting the loss curve")
     write_loss_curve(run_dir / "metrics.jsonl", out_dir / "loss.png")
     if not (out_dir / "frames.png").is_file():
         write_frames_montage(data_dir / "image", out_dir / "frames.png")
-    figures = {f"mesh_{k}": v for k, v in mesh_figures(mesh).items()}
-    summary: dict[str, Any] = {"mesh": mesh_figures(mesh)}
+    download = {"faces_before": int(len(dense.faces)), "faces": int(len(mesh.faces)), "texture": texture or None,
+                "usdz_metres_per_unit": USDZ_METRES_PER_UNIT, "bytes": sizes}
+    summary: dict[str, Any] = {"mesh": mesh_figures(mesh), "download": download}
     capture_file = data_dir / "capture.json"
     if capture_file.is_file():
         summary["capture"] = json.loads(capture_file.read_text())
     rows = read_metrics_log(run_dir / "metrics.jsonl")
     if rows:
         summary["train"] = rows[-1]
-    (out_dir / "metrics.json").write_text(json.dumps(summary, indent=2))
+    write_json_atomic(out_dir / "metrics.json", summary)
     progress(1.0, "exported")
+    figures = {f"mesh_{k}": v for k, v in mesh_figures(mesh).items()}
+    figures.update(mesh_faces_before=int(len(dense.faces)), texture_size=texture_size if textured is not None else 0,
+                   glb_mb=round(sizes["mesh.glb"] / 2**20, 3), usdz_mb=round(sizes["mesh.usdz"] / 2**20, 3))
+    if texture:
+        figures.update(texture_s=texture["seconds"], texture_seen=texture["seen"])
     return figures

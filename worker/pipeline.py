@@ -20,7 +20,8 @@ Job folder::
     data/                    the NeuS dataset (image/, cameras_sphere.npz, frames.json, capture.json, cameras.png)
     run/                     training (config.json, checkpoints/, metrics.jsonl, validation/)
     mesh/mesh.ply            the extracted mesh
-    export/                  mesh.glb, mesh.ply, preview.png, loss.png, frames.png, metrics.json
+    export/                  mesh.glb, mesh.obj (+ mesh.mtl, mesh.png), mesh.usdz, mesh.ply, preview.png, loss.png,
+                             frames.png, metrics.json
     stages/<name>.json       finished-stage markers
 """
 
@@ -36,13 +37,18 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from neudf_core.decimate import DEFAULT_FACES
 from neudf_core.files import write_json_atomic
 from neudf_core.progress import Cancelled, ProgressFn, null_progress, sub_progress
+from neudf_core.texture import DEFAULT_TEXTURE_SIZE
 from worker.errors import StageError
 
 __all__ = ["JobOptions", "STAGES", "STAGE_NAMES", "run_pipeline", "artifact_files", "completed_stages", "StageError",
            "Cancelled"]
 
+
+# The download's files (worker.export writes them; named here, where the service reads the artifact list).
+EXPORT_FILES = ("mesh.glb", "mesh.obj", "mesh.mtl", "mesh.png", "mesh.usdz", "mesh.ply")
 
 # Sized so a 10 s phone video finishes end to end within about 20 minutes on a 2-core CPU.
 DEFAULT_TRAIN_MINUTES = 9.0
@@ -72,6 +78,10 @@ class JobOptions(BaseModel):
     mesh_min_seen: float | None = Field(None, ge=0, le=1, description="Share of the video's cameras that must see a "
                                         "face for it to stay (default 0.15): sheets fewer views see are the "
                                         "field's guesses. 0 keeps every face.")
+    faces: int = Field(DEFAULT_FACES, ge=0, le=5_000_000, description="Faces of the downloaded mesh (quadric "
+                       "decimation, open boundaries kept); 0 keeps every face.")
+    texture_size: int = Field(DEFAULT_TEXTURE_SIZE, ge=0, le=4096, description="Side of the texture baked from the "
+                              "frames, px; 0: vertex colours only.")
 
     @field_validator("preset")
     @classmethod
@@ -81,6 +91,20 @@ class JobOptions(BaseModel):
         presets = available_presets()
         if value is not None and value not in presets:
             raise ValueError(f"unknown preset {value!r}; available: {', '.join(presets)}")
+        return value
+
+    @field_validator("faces")
+    @classmethod
+    def _enough_faces(cls, value: int) -> int:
+        if 0 < value < 100:
+            raise ValueError("a mesh of fewer than 100 faces shows nothing; use 0 to keep every face")
+        return value
+
+    @field_validator("texture_size")
+    @classmethod
+    def _texture_side(cls, value: int) -> int:
+        if 0 < value < 64:
+            raise ValueError("a texture needs at least 64 px a side; use 0 for vertex colours only")
         return value
 
 
@@ -208,7 +232,8 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
 def _export(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
     from worker.export import export_job
 
-    return export_job(ctx.mesh_file, ctx.data_dir, ctx.run_dir, ctx.export_dir, progress=progress)
+    return export_job(ctx.mesh_file, ctx.data_dir, ctx.run_dir, ctx.export_dir, faces=ctx.options.faces,
+                      texture_size=ctx.options.texture_size, progress=progress)
 
 
 @dataclass(frozen=True)
@@ -246,9 +271,10 @@ STAGES: tuple[Stage, ...] = (
     Stage("mesh", 0.10, _mesh, lambda c: [c.mesh_file], owns=lambda c: [c.mesh_file.parent],
           keys=("mesh_method", "mesh_resolution", "mesh_threshold", "mesh_min_faces", "mesh_min_seen"),
           expect_s=lambda c: 20.0),
-    Stage("export", 0.03, _export, lambda c: [c.export_dir / "mesh.glb", c.export_dir / "metrics.json"],
-          expect_s=lambda c: 10.0,
-          owns=lambda c: [c.export_dir / n for n in ("mesh.glb", "mesh.ply", "preview.png", "loss.png", "metrics.json")]),
+    # The bake projects every frame onto the texture: about a third of a second per frame on a 2-core CPU.
+    Stage("export", 0.05, _export, lambda c: [c.export_dir / "mesh.glb", c.export_dir / "metrics.json"],
+          keys=("faces", "texture_size"), expect_s=lambda c: 15.0 + (0.35 * c.frames if c.options.texture_size else 0),
+          owns=lambda c: [c.export_dir / n for n in (*EXPORT_FILES, "preview.png", "loss.png", "metrics.json")]),
 )
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)
 
@@ -396,8 +422,7 @@ def artifact_files(job_dir: str | Path) -> dict[str, Path]:
     """Artifact name -> file, for the files that exist now. Names are fixed: nothing else is served."""
     job = Path(job_dir)
     candidates: dict[str, Path | None] = {
-        "mesh.glb": job / "export" / "mesh.glb",
-        "mesh.ply": job / "export" / "mesh.ply",
+        **{name: job / "export" / name for name in EXPORT_FILES},
         "preview.png": job / "export" / "preview.png",
         "loss.png": job / "export" / "loss.png",
         "frames.png": job / "export" / "frames.png",
