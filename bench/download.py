@@ -83,31 +83,16 @@ def held_out_psnr(mesh, data: Path, texture_size: int, every: int, scale: float)
             "psnr_gain_db": round(psnr["texture"] - psnr["vertex_colours"], 2)}
 
 
-def truth_transform(job: Path, truth_c2w: Path):
-    """The similarity from the job's unit sphere into the garment's frame (the e2e bench's alignment)."""
-    from worker.capture.evaluate import align_cameras, load_dataset_cameras
-
-    _, est = load_dataset_cameras(job / "data")
-    entries = json.loads((job / "data" / "frames.json").read_text())
-    truth = np.load(truth_c2w)[[e["frame_index"] for e in entries]]
-    return align_cameras(est, truth)
-
-
 def decimation_figures(mesh, fraction: float, job: Path, truth: tuple[Path, Path] | None) -> dict:
     small = decimate(mesh, int(len(mesh.faces) * fraction))
     out = {"faces": len(mesh.faces), "faces_decimated": len(small.faces),
            "loops": boundary_loops(mesh), "loops_decimated": boundary_loops(small),
            "chamfer_to_undecimated": round(evaluate(small, mesh, n_samples=100_000)["chamfer"], 6)}
     if truth is not None:
-        sys.path.insert(0, str(ROOT / "bench"))
-        from e2e import load_garment  # the bench's garment in its unit sphere
+        from bench.e2e import aligned_mesh, load_garment  # the e2e bench's garment and alignment
 
         garment = load_garment(truth[0])
-        s, R, t = truth_transform(job, truth[1])
-        moved = [m.copy() for m in (mesh, small)]
-        for m in moved:
-            m.vertices = s * np.asarray(m.vertices) @ R.T + t
-        before, after = (evaluate(m, garment)["chamfer"] for m in moved)
+        before, after = (evaluate(aligned_mesh(job, np.load(truth[1]), m)[0], garment)["chamfer"] for m in (mesh, small))
         out.update(chamfer_gt=round(before, 6), chamfer_gt_decimated=round(after, 6),
                    chamfer_change=round((after - before) / before, 4))
     return out

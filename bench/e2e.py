@@ -113,14 +113,21 @@ def reuse_capture(source: Path, job: Path) -> None:
         shutil.copy2(source / "stages" / f"{stage}.json", job / "stages" / f"{stage}.json")
 
 
-def aligned_mesh(job: Path, true_c2w: np.ndarray) -> tuple[Any, dict[str, float]]:
-    """The job's mesh moved from its unit sphere into the true world by the camera similarity, and how far
-    the estimated cameras are from the true ones after it."""
-    mesh = load_mesh(job / "mesh" / "mesh.ply")
+def camera_similarity(job: Path, true_c2w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(s, R, t) taking the job's unit sphere onto the true world (x -> s R x + t), by its estimated cameras
+    against the true ones of the same frames; also both camera sets."""
     _, est = load_dataset_cameras(job / "data")
     entries = json.loads((job / "data" / "frames.json").read_text())
     truth = true_c2w[[e["frame_index"] for e in entries]]
     s, R, t = align_cameras(est, truth)
+    return s, R, t, est, truth
+
+
+def aligned_mesh(job: Path, true_c2w: np.ndarray, mesh: Any = None) -> tuple[Any, dict[str, float]]:
+    """The job's mesh (or ``mesh``, in the job's unit sphere) moved into the true world by the camera
+    similarity, and how far the estimated cameras are from the true ones after it."""
+    mesh = load_mesh(job / "mesh" / "mesh.ply") if mesh is None else mesh.copy()
+    s, R, t, est, truth = camera_similarity(job, true_c2w)
     mesh.vertices = s * np.asarray(mesh.vertices) @ R.T + t
     errors = pose_errors(est, truth)
     orbit = float(np.median(np.linalg.norm(truth[:, :3, 3], axis=1)))

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from neudf_core.decimate import DEFAULT_FACES
 from neudf_core.files import write_json_atomic
@@ -93,19 +93,19 @@ class JobOptions(BaseModel):
             raise ValueError(f"unknown preset {value!r}; available: {', '.join(presets)}")
         return value
 
-    @field_validator("faces")
+    @field_validator("faces", "texture_size")
     @classmethod
-    def _enough_faces(cls, value: int) -> int:
-        if 0 < value < 100:
-            raise ValueError("a mesh of fewer than 100 faces shows nothing; use 0 to keep every face")
+    def _zero_or_enough(cls, value: int, info: ValidationInfo) -> int:
+        """0 switches decimation or the texture off; a small non-zero value is a mistake, not a choice."""
+        least, why = _LEAST[info.field_name]
+        if 0 < value < least:
+            raise ValueError(f"{why} (at least {least}); 0 turns it off")
         return value
 
-    @field_validator("texture_size")
-    @classmethod
-    def _texture_side(cls, value: int) -> int:
-        if 0 < value < 64:
-            raise ValueError("a texture needs at least 64 px a side; use 0 for vertex colours only")
-        return value
+
+# The least non-zero value of an option where 0 means "off", and why.
+_LEAST = {"faces": (100, "a mesh of so few faces shows nothing"),
+          "texture_size": (64, "a texture that small shows nothing")}
 
 
 @dataclass
