@@ -32,9 +32,9 @@ from rich.progress import (
 )
 from rich.text import Text
 
-from neudf_core.decimate import DEFAULT_FACES
+from neudf_core.decimate import DEFAULT_FACES, MIN_FACES
 from neudf_core.progress import ProgressFn
-from neudf_core.texture import DEFAULT_TEXTURE_SIZE
+from neudf_core.texture import DEFAULT_TEXTURE_SIZE, MAX_TEXTURE_SIZE, MIN_TEXTURE_SIZE
 
 err_console = Console(stderr=True)
 
@@ -165,14 +165,15 @@ def mesh_command(
         fail(f"--resolution must be between 16 and 2048, got {resolution}")
     if not 0.0 < min_seen <= 1.0:
         fail(f"--min-seen is a share of the cameras, in (0, 1], got {min_seen}")
-    if faces < 0 or 0 < faces < 100:
-        fail(f"--faces must be 0 (every face) or at least 100, got {faces}")
+    if faces < 0 or 0 < faces < MIN_FACES:
+        fail(f"--faces must be 0 (every face) or at least {MIN_FACES}, got {faces}")
     if texture_size is not None and texture_size > 0 and views is None:
         fail("--texture-size needs --views DATA: the texture is baked from the dataset's frames")
     if texture_size is None:
         texture_size = DEFAULT_TEXTURE_SIZE if views is not None else 0
-    if not (texture_size == 0 or 64 <= texture_size <= 8192):
-        fail(f"--texture-size must be 0 (vertex colours) or between 64 and 8192, got {texture_size}")
+    if not (texture_size == 0 or MIN_TEXTURE_SIZE <= texture_size <= MAX_TEXTURE_SIZE):
+        fail(f"--texture-size must be 0 (vertex colours) or between {MIN_TEXTURE_SIZE} and {MAX_TEXTURE_SIZE}, "
+             f"got {texture_size}")
     with user_errors(), progress_bar("meshing") as report:
         mesh = mesh_run(run, out, method=method.value, resolution=resolution, threshold=threshold, views=views,
                         min_seen_fraction=min_seen, faces=faces, texture_size=texture_size, device=device.value,

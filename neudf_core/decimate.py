@@ -16,9 +16,10 @@ import numpy as np
 if TYPE_CHECKING:  # loaded when a mesh is decimated: the API process reads only DEFAULT_FACES
     import trimesh
 
-__all__ = ["DEFAULT_FACES", "decimate", "transfer_vertex_colors"]
+__all__ = ["DEFAULT_FACES", "MIN_FACES", "decimate", "transfer_vertex_colors"]
 
 DEFAULT_FACES = 100_000
+MIN_FACES = 100  # a target below this shows nothing: 0 (keep every face) is the way to turn decimation off
 
 
 def decimate(mesh: trimesh.Trimesh, faces: int = DEFAULT_FACES) -> trimesh.Trimesh:

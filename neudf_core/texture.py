@@ -47,10 +47,11 @@ from neudf_core.progress import ProgressFn, null_progress
 if TYPE_CHECKING:  # trimesh and the dataset (torch) load when a bake runs: the API reads only the defaults
     import trimesh
 
-__all__ = ["DEFAULT_TEXTURE_SIZE", "BACK_OFFSET", "Views", "Atlas", "load_views", "unwrap", "rasterize",
+__all__ = ["DEFAULT_TEXTURE_SIZE", "MIN_TEXTURE_SIZE", "MAX_TEXTURE_SIZE", "BACK_OFFSET", "Views", "Atlas", "load_views", "unwrap", "rasterize",
            "bake_texture", "textured_mesh"]
 
 DEFAULT_TEXTURE_SIZE = 2048
+MIN_TEXTURE_SIZE, MAX_TEXTURE_SIZE = 64, 4096  # the sides a texture may have (0: no texture)
 BACK_OFFSET = 1e-3  # unit-sphere units (0.25 mm at 0.5 m across): a face's back twin sits this far behind it
 PADDING = 4  # texels between charts, and how far the colours are dilated past a chart's edge
 DEPTH_SIDE = 800  # longest side of the z-buffer: occlusion needs the shape, not every pixel

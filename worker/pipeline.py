@@ -37,10 +37,10 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from neudf_core.decimate import DEFAULT_FACES
+from neudf_core.decimate import DEFAULT_FACES, MIN_FACES
 from neudf_core.files import write_json_atomic
 from neudf_core.progress import Cancelled, ProgressFn, null_progress, sub_progress
-from neudf_core.texture import DEFAULT_TEXTURE_SIZE
+from neudf_core.texture import DEFAULT_TEXTURE_SIZE, MAX_TEXTURE_SIZE, MIN_TEXTURE_SIZE
 from worker.errors import StageError
 
 __all__ = ["JobOptions", "STAGES", "STAGE_NAMES", "run_pipeline", "artifact_files", "completed_stages", "StageError",
@@ -80,7 +80,7 @@ class JobOptions(BaseModel):
                                         "field's guesses. 0 keeps every face.")
     faces: int = Field(DEFAULT_FACES, ge=0, le=5_000_000, description="Faces of the downloaded mesh (quadric "
                        "decimation, open boundaries kept); 0 keeps every face.")
-    texture_size: int = Field(DEFAULT_TEXTURE_SIZE, ge=0, le=4096, description="Side of the texture baked from the "
+    texture_size: int = Field(DEFAULT_TEXTURE_SIZE, ge=0, le=MAX_TEXTURE_SIZE, description="Side of the texture baked from the "
                               "frames, px; 0: vertex colours only.")
 
     @field_validator("preset")
@@ -104,8 +104,8 @@ class JobOptions(BaseModel):
 
 
 # The least non-zero value of an option where 0 means "off", and why.
-_LEAST = {"faces": (100, "a mesh of so few faces shows nothing"),
-          "texture_size": (64, "a texture that small shows nothing")}
+_LEAST = {"faces": (MIN_FACES, "a mesh of so few faces shows nothing"),
+          "texture_size": (MIN_TEXTURE_SIZE, "a texture that small shows nothing")}
 
 
 @dataclass
