@@ -51,8 +51,6 @@ class ColorConfig(_Block):
     d_hidden: int = 256
     n_layers: int = 4
     n_freqs_view: int = 4
-    n_freqs_point: int = Field(
-        0, ge=0, description="frequencies of the point's encoding for the colour network (0: the raw point, the paper)")
     view_dependent: bool = Field(
         True, description="feed the view direction to the colour network (the paper); false keeps lids off openings")
 

@@ -165,25 +165,19 @@ class UDFNetwork(nn.Module):
 
 
 class ColorNetwork(nn.Module):
-    """c(x, v, n, feature) -> RGB in (0, 1); c(x, n, feature) when ``view_dependent`` is False.
-
-    ``n_freqs_point`` > 0 encodes x with its own frequencies (the paper feeds the raw point): a texture finer
-    than the shape can then be drawn by the colour network instead of by Psi's shared features, which
-    otherwise print it into the surface as ridges.
-    """
+    """c(x, v, n, feature) -> RGB in (0, 1); c(x, n, feature) when ``view_dependent`` is False."""
 
     def __init__(self, d_feature: int = 256, d_hidden: int = 256, n_layers: int = 4, n_freqs_view: int = 4,
-                 use_weight_norm: bool = True, view_dependent: bool = True, n_freqs_point: int = 0):
+                 use_weight_norm: bool = True, view_dependent: bool = True):
         super().__init__()
         self.view_encoding = PositionalEncoding(n_freqs_view) if view_dependent else None
-        self.point_encoding = PositionalEncoding(n_freqs_point)
         d_view = self.view_encoding.d_out if self.view_encoding is not None else 0
-        dims = [self.point_encoding.d_out + d_view + 3 + d_feature] + [d_hidden] * n_layers + [3]
+        dims = [3 + d_view + 3 + d_feature] + [d_hidden] * n_layers + [3]
         self.layers = nn.ModuleList(_linear(a, b, use_weight_norm) for a, b in zip(dims[:-1], dims[1:]))
 
     def forward(self, x: Tensor, view_dirs: Tensor, normals: Tensor, features: Tensor) -> Tensor:
         views = [self.view_encoding(view_dirs)] if self.view_encoding is not None else []
-        h = torch.cat([self.point_encoding(x), *views, normals, features], dim=-1)
+        h = torch.cat([x, *views, normals, features], dim=-1)
         for i, layer in enumerate(self.layers):
             h = layer(h)
             if i < len(self.layers) - 1:

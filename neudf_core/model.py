@@ -40,7 +40,7 @@ class NeUDFModel(nn.Module):
                                   use_weight_norm=f.use_weight_norm, signed=self.signed, encoding=encoding,
                                   output=f.output)
         self.color_net = ColorNetwork(f.d_feature, c.d_hidden, c.n_layers, c.n_freqs_view,
-                                      view_dependent=c.view_dependent, n_freqs_point=c.n_freqs_point)
+                                      view_dependent=c.view_dependent)
         self.background = (BackgroundNeRF(b.d_hidden, b.n_layers, b.n_freqs, view_dependent=b.view_dependent) if self._use_background() else None)
         self.sharpness = Sharpness(cfg.renderer.sharpness_init)
 

@@ -52,27 +52,6 @@ def test_colour_ignores_the_view_direction_only_when_told_to():
         assert differ == view_dependent
 
 
-def test_encoded_point_lets_the_colour_network_draw_a_fine_texture_on_its_own():
-    # Stripes 8 to a unit on a fixed surface, with features that carry nothing: the raw point cannot draw
-    # them, its own frequencies can (so Psi's features need not bend the surface to draw them).
-    torch.manual_seed(0)
-    x = torch.rand(2048, 3) * 2 - 1
-    target = (0.5 + 0.4 * torch.sign(torch.sin(8 * torch.pi * x[:, :1]))).expand(-1, 3)
-    normals, views, features = torch.zeros(2048, 3), torch.zeros(2048, 3), torch.zeros(2048, 16)
-    errors = {}
-    for n_freqs in (0, 6):
-        torch.manual_seed(0)
-        net = ColorNetwork(d_feature=16, d_hidden=64, n_layers=2, view_dependent=False, n_freqs_point=n_freqs)
-        opt = torch.optim.Adam(net.parameters(), lr=5e-3)
-        for _ in range(300):
-            loss = (net(x, views, normals, features) - target).abs().mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-        errors[n_freqs] = float(loss)
-    assert errors[6] < 0.5 * errors[0], errors
-
-
 def test_background_colour_ignores_the_view_direction_only_when_told_to():
     torch.manual_seed(0)
     x = torch.nn.functional.normalize(torch.randn(100, 3), dim=-1) * (1.0 + 5.0 * torch.rand(100, 1))
