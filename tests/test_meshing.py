@@ -18,6 +18,7 @@ import trimesh
 from neudf_core.export import export_mesh
 from neudf_core.extract import mesh_run
 from neudf_core.meshing import NoSurfaceError, color_vertices, extract_mesh
+from neudf_core.meshing.cleanup import drop_floor_pieces
 from neudf_core.metrics import boundary_loops
 
 RES = 128
@@ -220,6 +221,37 @@ def test_tiny_floating_pieces_are_dropped():
     kept = extract_mesh(with_speck, method="meshudf", resolution=RES, min_component_faces=0,
                         min_component_fraction=0.0)
     assert len(kept.split(only_watertight=False)) == 2
+
+
+def test_sheets_resting_on_the_floor_cut_are_dropped_and_what_stands_there_kept():
+    floor = -0.7
+    grid = np.linspace(-0.4, 0.4, 9)
+    garment = trimesh.creation.icosphere(subdivisions=3)  # 1280 faces: the largest piece
+    garment.apply_scale([0.4, 0.3, 0.05])
+    garment.apply_translation([0.0, 0.2, 0.0])  # hangs well above the floor
+    shadow = trimesh.Trimesh(*_flat_sheet(grid, floor + 0.005))  # a sheet drawn just above the cut
+    shadow.vertices[:, 1] += 0.08 * (shadow.vertices[:, 0] ** 2 > 0.1)  # edges curling up, as learned ones do
+    can = trimesh.creation.cylinder(radius=0.1, height=0.5)
+    can.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    can.apply_translation([0.6, floor + 0.25 + 0.004, 0.0])  # stands on the floor
+    mesh = trimesh.util.concatenate([garment, shadow, can])
+    mesh.metadata["meshing"] = {"voxel": 0.01}
+    out = drop_floor_pieces(mesh.copy(), floor, band=0.15, touch=0.02)
+    assert out.metadata["meshing"]["faces_on_floor"] == len(shadow.faces)
+    assert out.vertices[:, 1].max() == pytest.approx(mesh.vertices[:, 1].max())
+    assert len(out.split(only_watertight=False)) == 2  # the garment and the can
+    # the largest piece stays, low or not: a flat object lying on the floor
+    alone = drop_floor_pieces(shadow.copy(), floor, band=0.15, touch=0.02)
+    assert len(alone.faces) == len(shadow.faces)
+
+
+def _flat_sheet(grid: np.ndarray, y: float) -> tuple[np.ndarray, np.ndarray]:
+    xs, zs = np.meshgrid(grid, grid, indexing="ij")
+    vertices = np.stack([xs.ravel(), np.full(xs.size, y), zs.ravel()], -1)
+    n = len(grid)
+    quads = [(i * n + j, i * n + j + 1, (i + 1) * n + j + 1, (i + 1) * n + j) for i in range(n - 1) for j in range(n - 1)]
+    faces = np.array([f for a, b, c, d in quads for f in ((a, b, c), (a, c, d))])
+    return vertices, faces
 
 
 def test_vertex_colours_look_along_the_negated_normal_and_survive_glb(tmp_path):

@@ -181,6 +181,14 @@ def fill_small_holes(mesh: trimesh.Trimesh, max_perimeter: float) -> trimesh.Tri
     return trimesh.Trimesh(np.vstack([mesh.vertices, centres]), np.vstack([faces, new_faces]), process=False)
 
 
+def _piece_labels(faces: np.ndarray) -> np.ndarray:
+    """The connected piece (through shared edges) of each face."""
+    n = len(faces)
+    pairs, _ = _face_pairs(faces)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
 def drop_small_components(
     mesh: trimesh.Trimesh, min_faces: int, min_fraction: float
 ) -> trimesh.Trimesh:
@@ -188,9 +196,7 @@ def drop_small_components(
     n = len(mesh.faces)
     if n == 0:
         return mesh
-    pairs, _ = _face_pairs(mesh.faces)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
+    labels = _piece_labels(mesh.faces)
     sizes = np.bincount(labels)
     keep = sizes[labels] >= max(min_faces, min_fraction * n)
     dropped = int(np.sum(sizes < max(min_faces, min_fraction * n)))
@@ -210,6 +216,37 @@ def keep_above(mesh: trimesh.Trimesh, floor_y: float) -> trimesh.Trimesh:
     mesh.update_faces(keep)
     mesh.remove_unreferenced_vertices()
     mesh.metadata["meshing"] = {**info, "floor_y": floor_y, "faces_below_floor": int((~keep).sum())}
+    return mesh
+
+
+def drop_floor_pieces(mesh: trimesh.Trimesh, floor_y: float, band: float, touch: float) -> trimesh.Trimesh:
+    """Drop pieces that rest on the floor cut (lowest point within ``touch`` of ``floor_y``) and stay low
+    (highest point within ``band`` of it), the largest piece excepted.
+
+    Training leaves what lies under the cut to the surroundings model, which is sampled only beyond the
+    unit sphere; the floor inside the sphere and the object's shadow on it can then be drawn by a thin
+    sheet just above the cut. An object standing on the floor rises far above the band, and the largest
+    piece is kept whatever its height (a flat object lying on the floor).
+    """
+    if len(mesh.faces) == 0:
+        return mesh
+    labels = _piece_labels(mesh.faces)
+    face_y = mesh.vertices[mesh.faces][:, :, 1]
+    n_pieces = labels.max() + 1
+    low = np.full(n_pieces, np.inf)
+    high = np.full(n_pieces, -np.inf)
+    np.minimum.at(low, labels, face_y.min(axis=1))
+    np.maximum.at(high, labels, face_y.max(axis=1))
+    on_floor = (low <= floor_y + touch) & (high <= floor_y + band)
+    on_floor[np.bincount(labels).argmax()] = False
+    if not on_floor.any():
+        return mesh
+    info = mesh.metadata.get("meshing", {})
+    keep = ~on_floor[labels]
+    log.info("dropped %d pieces lying on the floor (%d faces)", int(on_floor.sum()), int((~keep).sum()))
+    mesh.update_faces(keep)
+    mesh.remove_unreferenced_vertices()
+    mesh.metadata["meshing"] = {**info, "faces_on_floor": int((~keep).sum())}
     return mesh
 
 
