@@ -64,6 +64,11 @@ class BackgroundConfig(_Block):
     n_samples: int = 32
     view_dependent: bool = Field(True, description="colour depends on the view direction (NeRF++); False: "
                                  "the surroundings cannot paint the object behind it, view by view")
+    floor: bool = Field(False, description="the floor the scene stage found is an opaque textured plane "
+                        "inside the unit sphere: a ray that reaches it there takes its colour, so the floor and "
+                        "the object's shadow on it are drawn where they are, not by the object or from beyond "
+                        "the sphere")
+    floor_freqs: int = Field(8, ge=0, description="frequencies of the floor texture's encoding of (x, z)")
 
 
 class RendererConfig(_Block):

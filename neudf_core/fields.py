@@ -222,6 +222,24 @@ class BackgroundNeRF(nn.Module):
         return sigma, rgb
 
 
+class FloorTexture(nn.Module):
+    """The colour of the floor plane inside the unit sphere as a function of the point's (x, z): a texture,
+    seen the same from every view, so shadows and floor patterns stay put on the floor."""
+
+    def __init__(self, d_hidden: int = 64, n_layers: int = 3, n_freqs: int = 8):
+        super().__init__()
+        self.encoding = PositionalEncoding(n_freqs, d_in=2)
+        dims = [self.encoding.d_out] + [d_hidden] * n_layers
+        layers: list[nn.Module] = []
+        for d_in, d_out in zip(dims[:-1], dims[1:]):
+            layers += [nn.Linear(d_in, d_out), nn.ReLU()]
+        self.net = nn.Sequential(*layers, nn.Linear(dims[-1], 3))
+
+    def forward(self, xz: Tensor) -> Tensor:
+        """xz: (N, 2) floor coordinates. Returns rgb (N, 3) in 0..1."""
+        return torch.sigmoid(self.net(self.encoding(xz)))
+
+
 class Sharpness(nn.Module):
     """One learnable scalar: r for the NeUDF weight, s for the NeuS baselines.
 

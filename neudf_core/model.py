@@ -8,7 +8,7 @@ import torch
 from torch import Tensor, nn
 
 from neudf_core.config import TrainConfig
-from neudf_core.fields import BackgroundNeRF, ColorNetwork, HashGridEncoding, Sharpness, UDFNetwork
+from neudf_core.fields import BackgroundNeRF, ColorNetwork, FloorTexture, HashGridEncoding, Sharpness, UDFNetwork
 from neudf_core.normals import regularised_normals
 from neudf_core.renderer import alpha_for_mode, composite, section_ends, weights_from_alpha
 from neudf_core.sampler import hierarchical_samples, near_far_from_sphere, outside_samples, stratified
@@ -41,7 +41,10 @@ class NeUDFModel(nn.Module):
                                   output=f.output)
         self.color_net = ColorNetwork(f.d_feature, c.d_hidden, c.n_layers, c.n_freqs_view,
                                       view_dependent=c.view_dependent)
-        self.background = (BackgroundNeRF(b.d_hidden, b.n_layers, b.n_freqs, view_dependent=b.view_dependent) if self._use_background() else None)
+        self.background = (BackgroundNeRF(b.d_hidden, b.n_layers, b.n_freqs, view_dependent=b.view_dependent)
+                           if self._use_background() else None)
+        self.floor = (FloorTexture(b.d_hidden, max(b.n_layers - 1, 1), b.floor_freqs)
+                      if self.background is not None and b.floor else None)
         self.sharpness = Sharpness(cfg.renderer.sharpness_init)
 
     def _use_background(self) -> bool:
@@ -132,6 +135,8 @@ class NeUDFModel(nn.Module):
 
         if self.background is not None:
             bg = self._render_background(rays_o, rays_d, far, state.perturb)
+            if self.floor is not None and self.cfg.data.floor_y is not None:
+                bg = self._floor_over_background(rays_o, rays_d, bg)
         elif bg_color is not None:
             bg = bg_color.expand_as(color)
         else:
@@ -151,6 +156,16 @@ class NeUDFModel(nn.Module):
             "sharpness": sharp.detach(),
             "mid_z": mid_z,
         }
+
+    def _floor_over_background(self, rays_o: Tensor, rays_d: Tensor, bg: Tensor) -> Tensor:
+        """Rays from above going down that meet the floor plane inside the sphere end there, in the floor's
+        colour; the rest keep the background's."""
+        floor_y = self.cfg.data.floor_y
+        down = (rays_d[:, 1] < -1e-6) & (rays_o[:, 1] > floor_y)
+        t = (floor_y - rays_o[:, 1]) / torch.where(down, rays_d[:, 1], -torch.ones_like(rays_d[:, 1]))
+        hit_point = rays_o + rays_d * t[:, None]
+        hit = down & (hit_point.norm(dim=-1) <= 1.0)
+        return torch.where(hit[:, None], self.floor(hit_point[:, [0, 2]]), bg)
 
     def _render_background(self, rays_o: Tensor, rays_d: Tensor, far: Tensor, perturb: bool) -> Tensor:
         z = outside_samples(far, self.cfg.background.n_samples, perturb)

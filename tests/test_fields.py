@@ -4,7 +4,7 @@ import torch
 
 from neudf_core.config import load_config
 from neudf_core.fields import BackgroundNeRF, ColorNetwork, HashGridEncoding, UDFNetwork
-from neudf_core.model import NeUDFModel
+from neudf_core.model import NeUDFModel, RenderState
 
 
 def test_psi_is_non_negative_and_starts_as_the_distance_to_a_point():
@@ -98,3 +98,33 @@ def test_finite_difference_gradient_matches_autograd():
     psi, grad, _ = exact_model.udf_and_grad(x)
     assert torch.allclose(psi_fd, psi)
     assert (grad_fd - grad).norm(dim=-1).max() < 0.05
+
+
+def test_rays_that_reach_the_floor_inside_the_sphere_take_the_floors_colour():
+    """With a floor plane, a ray going down onto the floor inside the unit sphere ends there in the floor
+    texture's colour; rays that meet the floor beyond the sphere, go up, or start under it see the
+    background as before."""
+    torch.manual_seed(0)
+    cfg = load_config("quick", {"background": {"floor": True}, "data": {"floor_y": -0.5}})
+    model = NeUDFModel(cfg)
+    eye = torch.tensor([0.0, 2.0, 2.5])
+    targets = torch.tensor([[0.2, -0.5, 0.1],   # the floor inside the sphere
+                            [1.5, -0.5, 0.0],   # the floor beyond it
+                            [0.0, 3.0, 0.0]])   # up, away from the floor
+    rays_o = torch.cat([eye.expand(3, 3), torch.tensor([[0.0, -0.9, 2.5]])])  # and an eye under the floor
+    rays_d = torch.nn.functional.normalize(torch.cat([targets - eye, torch.tensor([[0.0, -0.2, -1.0]])]), dim=-1)
+    background = torch.full((4, 3), 0.25)
+    with torch.no_grad():
+        out = model._floor_over_background(rays_o, rays_d, background)
+        expected = model.floor(targets[:1, [0, 2]])
+    assert torch.allclose(out[0], expected[0], atol=1e-5)
+    assert torch.equal(out[1:], background[1:])
+
+    state = RenderState(perturb=False)
+    colours = []
+    for bias in (-10.0, 10.0):  # a black floor, then a white one
+        with torch.no_grad():
+            model.floor.net[-1].bias.fill_(bias)
+            colours.append(model.render(rays_o, rays_d, state)["color"])
+    changed = (colours[1] - colours[0]).abs().amax(dim=-1)
+    assert changed[0] > 0.05 and bool((changed[1:] == 0).all())
