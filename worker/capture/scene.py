@@ -173,33 +173,38 @@ def upright_rotation(up: np.ndarray, toward: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z])
 
 
-def floor_height(heights: np.ndarray, spread: np.ndarray, band: float, min_points: int) -> float | None:
+def floor_height(heights: np.ndarray, spread: np.ndarray, band: float, min_points: int) -> tuple[float | None, str]:
     """The floor under the object: a dense level of sparse points below the centre that spreads wider than
     the object does. ``heights``: the heights above the centre (upright) of the points in the column under
-    and around the object, ``spread``: their horizontal distance from it, ``band``: half the floor level's thickness. None when there is no such level.
+    and around the object, ``spread``: their horizontal distance from it, ``band``: half the floor level's
+    thickness. Returns the floor's top (None when there is no such level) and what was found, in words.
     """
     below = heights < -band
     if below.sum() < min_points:
-        return None
+        return None, f"{int(below.sum())} sparse points below the object"
     edges = np.arange(heights[below].min(), 0.0, band)
     if len(edges) < 2:
-        return None
+        return None, "the points below the object lie in one thin level"
     counts, edges = np.histogram(heights[below], bins=edges)
     level = float(edges[np.argmax(counts)] + band / 2)
     on = np.abs(heights - level) < band
     above = heights > level + band
+    found = f"{int(on.sum())} of {len(heights)} points on the densest level below, {int(above.sum())} above it"
     if on.sum() < max(min_points, 0.1 * len(heights)) or above.sum() < min_points:
-        return None
+        return None, found
     # A floor reaches beyond the object's footprint; a hem or a can's bottom rim does not.
-    if np.percentile(spread[on], 80) < 1.2 * np.percentile(spread[above], 80):
-        return None
-    return level + band
+    reach_on, reach_above = np.percentile(spread[on], 80), np.percentile(spread[above], 80)
+    found += f", reaching {reach_on / max(reach_above, 1e-12):.2f}x as far out as the object"
+    if reach_on < 1.2 * reach_above:
+        return None, found
+    return level + band, found
 
 
 def _object_sphere(cams: SceneCameras, opts: SceneOptions, up: np.ndarray
-                   ) -> tuple[np.ndarray, float, int, float | None, list[str]]:
+                   ) -> tuple[np.ndarray, float, int, float | None, str, list[str]]:
     """Centre and radius (COLMAP units) of the object, the number of sparse points used, the height of the
-    floor above the centre (along ``up``; None when there is none) and warnings."""
+    floor above the centre (along ``up``; None when there is none), what the floor search found, and
+    warnings."""
     centers, warnings = cams.centers, []
     try:
         focus = axes_point(centers, cams.axes)
@@ -215,11 +220,12 @@ def _object_sphere(cams: SceneCameras, opts: SceneOptions, up: np.ndarray
     near_mask = np.linalg.norm(offsets, axis=1) < reach
     if near_mask.sum() < opts.min_object_points:
         warnings.append(f"only {int(near_mask.sum())} sparse points near the centre: the object's size is a guess")
-        return focus, 0.3 * distance, int(near_mask.sum()), None, warnings
+        return focus, 0.3 * distance, int(near_mask.sum()), None, "too few points to look for one", warnings
     # The floor is looked for in the column under the object, deeper than the near ball reaches: a ball clips a
     # floor at its edge to a small disc, which looks like the object's own bottom.
     column = (spread < reach) & (heights < reach) & (heights > -2 * reach)
-    floor = floor_height(heights[column], spread[column], opts.floor_band * distance, opts.min_object_points)
+    floor, floor_search = floor_height(heights[column], spread[column], opts.floor_band * distance,
+                                       opts.min_object_points)
     if floor is not None:
         near_mask &= heights > floor
     near = cams.points[near_mask]
@@ -228,7 +234,7 @@ def _object_sphere(cams: SceneCameras, opts: SceneOptions, up: np.ndarray
     radius = float(np.percentile(np.linalg.norm(near - centre, axis=1), opts.object_percentile))
     if floor is not None:
         floor -= float((centre - focus) @ up)
-    return centre, radius, len(near), floor, warnings
+    return centre, radius, len(near), floor, floor_search, warnings
 
 
 def is_done(data_dir: str | Path) -> bool:
@@ -344,7 +350,7 @@ def write_scene(
     cams = load_model(model_dir, opts.max_point_error_px, opts.min_track_length)
 
     up = up_direction(cams.rights, cams.ups)
-    centre, radius, n_near, floor, warnings = _object_sphere(cams, opts, up)
+    centre, radius, n_near, floor, floor_search, warnings = _object_sphere(cams, opts, up)
     rotation = upright_rotation(up, cams.centers[0] - centre)
     # The world of the dataset: COLMAP's, moved to the object's centre and turned upright (COLMAP's units).
     centers_w = (cams.centers - centre) @ rotation.T
@@ -394,6 +400,7 @@ def write_scene(
     floor_unit = None if floor is None or floor / sphere_radius <= -1.0 else round(float(floor / sphere_radius), 4)
     write_json_atomic(data_dir / REGION_FILE, {"floor_y": floor_unit})
     scene["floor_y_unit"] = floor_unit
+    scene["floor_search"] = floor_search + (", under the unit sphere" if floor is not None and floor_unit is None else "")
     if warnings:
         scene["warnings"] = warnings
     seconds = time.perf_counter() - t0
