@@ -13,6 +13,11 @@ of the ground truth beside the result from the same camera.
     .venv/bin/python bench/e2e.py --meshes tshirt --weight neus_sdf   # the closed-surface baseline, same capture
     .venv/bin/python bench/e2e.py --render-only                    # cache the videos, train nothing
     .venv/bin/python bench/e2e.py --capture-only                   # videos and their capture, train nothing
+    .venv/bin/python bench/e2e.py --meshes bowl flag --out bench/results/e2e_held_out_cpu.json  # held-out shapes
+
+Besides the garments, ``--meshes`` takes the held-out shapes ``bowl`` (a hemisphere open at the top, one
+opening), ``flag`` (a wavy sheet standing upright) and ``holed_sheet`` (a flat sheet with a round hole):
+open surfaces that no default was tuned on, written as OBJ files into --work and filmed the same way.
 
 ``--weight neus_sdf`` (or a ``--tag``) reuses the capture (frames, poses, scene) of the NeUDF job of the same
 garment when it is in --work, so every variant sees the same cameras.
@@ -52,13 +57,35 @@ WIDTH, HEIGHT, FPS, SECONDS = 720, 1280, 30, 8
 CAPTURE_STAGES = ("frames", "poses", "scene")
 
 
-def garments(names: list[str] | None) -> list[Path]:
+HELD_OUT = ("bowl", "flag", "holed_sheet")
+
+
+def held_out_shape(name: str, work: Path) -> Path:
+    """Write a held-out open surface as OBJ (no texture: the renderer paints a procedural one) and return it."""
+    if name == "bowl":
+        mesh = synthetic.procedural_mesh("bowl", subdivisions=64)
+    elif name == "flag":  # the wavy sheet turned upright, as a flag or a curtain hangs
+        mesh = synthetic.procedural_mesh("wavy_sheet", subdivisions=64)
+        mesh.apply_transform(synthetic.trimesh.transformations.rotation_matrix(np.pi / 2, [1.0, 0.0, 0.0]))
+    elif name == "holed_sheet":
+        mesh = synthetic.procedural_mesh("sheet_with_hole", subdivisions=64)
+        mesh.apply_transform(synthetic.trimesh.transformations.rotation_matrix(0.3, [1.0, 0.0, 0.0]))
+    else:
+        raise ValueError(name)
+    path = work / "shapes" / f"{name}.obj"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mesh.export(path)
+    return path
+
+
+def garments(names: list[str] | None, work: Path) -> list[Path]:
     found = sorted(MESH_DIR.glob("*.obj"))
     if names:
-        found = [p for p in found if p.stem in names]
+        found = [p for p in found if p.stem in names] + [held_out_shape(n, work) for n in names if n in HELD_OUT]
         missing = set(names) - {p.stem for p in found}
         if missing:
-            raise SystemExit(f"no such garment in {MESH_DIR}: {', '.join(sorted(missing))}")
+            raise SystemExit(f"no such garment in {MESH_DIR} nor held-out shape ({', '.join(HELD_OUT)}): "
+                             f"{', '.join(sorted(missing))}")
     return found
 
 
@@ -233,7 +260,7 @@ def main() -> None:
     args = parser.parse_args()
 
     device = resolve_device(args.device)
-    meshes = garments(args.meshes)
+    meshes = garments(args.meshes, args.work)
     if args.render_only:
         for path in meshes:
             cached_video(args.work, path, args.seed)

@@ -400,7 +400,8 @@ def write_scene(
     floor_unit = None if floor is None or floor / sphere_radius <= -1.0 else round(float(floor / sphere_radius), 4)
     write_json_atomic(data_dir / REGION_FILE, {"floor_y": floor_unit})
     scene["floor_y_unit"] = floor_unit
-    scene["floor_search"] = floor_search + (", under the unit sphere" if floor is not None and floor_unit is None else "")
+    under = floor is not None and floor_unit is None
+    scene["floor_search"] = floor_search + (", under the unit sphere" if under else "")
     if warnings:
         scene["warnings"] = warnings
     seconds = time.perf_counter() - t0
