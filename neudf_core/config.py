@@ -53,12 +53,6 @@ class ColorConfig(_Block):
     n_freqs_view: int = 4
     view_dependent: bool = Field(
         True, description="feed the view direction to the colour network (the paper); false keeps lids off openings")
-    n_freqs_point: int = Field(
-        0, ge=0, description="frequencies of the point's encoding for the colour network (0: the raw point, the paper)")
-    point_freqs_ramp: tuple[float, float] = Field(
-        (0.0, 0.0), description="share of training over which those frequencies open, coarse to fine (start, end); "
-        "before the start the colour network sees the raw point only, so the surroundings cannot be painted on "
-        "a screen inside the sphere while the object's shape is still forming")
 
 
 class BackgroundConfig(_Block):

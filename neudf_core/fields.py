@@ -165,37 +165,19 @@ class UDFNetwork(nn.Module):
 
 
 class ColorNetwork(nn.Module):
-    """c(x, v, n, feature) -> RGB in (0, 1); c(x, n, feature) when ``view_dependent`` is False.
-
-    ``n_freqs_point`` > 0 encodes x with its own frequencies (the paper feeds the raw point): a texture finer
-    than the shape can then be drawn by the colour network instead of by Psi's shared features, which
-    otherwise print it into the surface. ``point_window`` opens them coarse to fine: frequency k is off
-    below window k, on above k + 1, and eased in between.
-    """
+    """c(x, v, n, feature) -> RGB in (0, 1); c(x, n, feature) when ``view_dependent`` is False."""
 
     def __init__(self, d_feature: int = 256, d_hidden: int = 256, n_layers: int = 4, n_freqs_view: int = 4,
-                 use_weight_norm: bool = True, view_dependent: bool = True, n_freqs_point: int = 0):
+                 use_weight_norm: bool = True, view_dependent: bool = True):
         super().__init__()
         self.view_encoding = PositionalEncoding(n_freqs_view) if view_dependent else None
-        self.point_encoding = PositionalEncoding(n_freqs_point)
-        self.n_freqs_point = n_freqs_point
         d_view = self.view_encoding.d_out if self.view_encoding is not None else 0
-        dims = [self.point_encoding.d_out + d_view + 3 + d_feature] + [d_hidden] * n_layers + [3]
+        dims = [3 + d_view + 3 + d_feature] + [d_hidden] * n_layers + [3]
         self.layers = nn.ModuleList(_linear(a, b, use_weight_norm) for a, b in zip(dims[:-1], dims[1:]))
 
-    def _encode_point(self, x: Tensor, window: float) -> Tensor:
-        enc = self.point_encoding(x)
-        if self.n_freqs_point == 0 or window >= self.n_freqs_point:
-            return enc
-        k = torch.arange(self.n_freqs_point, device=x.device, dtype=x.dtype)
-        ease = 0.5 * (1.0 - torch.cos(torch.pi * (window - k).clamp(0.0, 1.0)))
-        scale = torch.cat([torch.ones(3, device=x.device, dtype=x.dtype), ease.repeat_interleave(6)])
-        return enc * scale
-
-    def forward(self, x: Tensor, view_dirs: Tensor, normals: Tensor, features: Tensor,
-                point_window: float = float("inf")) -> Tensor:
+    def forward(self, x: Tensor, view_dirs: Tensor, normals: Tensor, features: Tensor) -> Tensor:
         views = [self.view_encoding(view_dirs)] if self.view_encoding is not None else []
-        h = torch.cat([self._encode_point(x, point_window), *views, normals, features], dim=-1)
+        h = torch.cat([x, *views, normals, features], dim=-1)
         for i, layer in enumerate(self.layers):
             h = layer(h)
             if i < len(self.layers) - 1:

@@ -22,7 +22,6 @@ class RenderState:
     perturb: bool = False
     with_grad: bool = False  # keep the graph through gradients (the eikonal term needs it)
     sharpness_floor: float = 0.0  # lower bound on r at this step (see trainer.sharpness_floor); 0 = none
-    color_window: float = float("inf")  # colour frequencies of the point open at this step (trainer.color_window)
 
 
 class NeUDFModel(nn.Module):
@@ -41,7 +40,7 @@ class NeUDFModel(nn.Module):
                                   use_weight_norm=f.use_weight_norm, signed=self.signed, encoding=encoding,
                                   output=f.output)
         self.color_net = ColorNetwork(f.d_feature, c.d_hidden, c.n_layers, c.n_freqs_view,
-                                      view_dependent=c.view_dependent, n_freqs_point=c.n_freqs_point)
+                                      view_dependent=c.view_dependent)
         self.background = (BackgroundNeRF(b.d_hidden, b.n_layers, b.n_freqs, view_dependent=b.view_dependent)
                            if self._use_background() else None)
         self.floor = (FloorTexture(b.d_hidden, max(b.n_layers - 1, 1), b.floor_freqs)
@@ -131,8 +130,7 @@ class NeUDFModel(nn.Module):
 
         normals = regularised_normals(points, grad)
         view_dirs = rays_d[:, None].expand(-1, n_samples, -1).reshape(-1, 3)
-        rgb = self.color_net(flat, view_dirs, normals.reshape(-1, 3), feature,
-                             state.color_window).reshape(n_rays, n_samples, 3)
+        rgb = self.color_net(flat, view_dirs, normals.reshape(-1, 3), feature).reshape(n_rays, n_samples, 3)
         color = composite(weights, rgb)
 
         if self.background is not None:

@@ -67,16 +67,6 @@ def sharpness_floor(step: int, cfg_renderer: RendererConfig, total: int) -> floa
     return float(start * (end / start) ** progress)
 
 
-def color_window(step: int, cfg_color, total: int) -> float:
-    """How many of the colour network's point frequencies are open at ``step``: none before the ramp's start,
-    all after its end, linearly between (as shares of ``total``)."""
-    start, end = cfg_color.point_freqs_ramp
-    if cfg_color.n_freqs_point == 0 or end <= 0:
-        return float("inf")
-    share = step / max(total, 1)
-    return cfg_color.n_freqs_point * min(max((share - start) / max(end - start, 1e-9), 0.0), 1.0)
-
-
 def fit_schedule_to_iters(cfg: TrainConfig, iters: int | None) -> TrainConfig:
     """Set the iteration count; when it is shorter than the preset's, warm-up and annealing shrink in
     proportion, so a short run still runs the whole schedule."""
@@ -173,7 +163,6 @@ class Trainer:
             perturb=training,
             with_grad=training,
             sharpness_floor=sharpness_floor(self.step, cfg.renderer, self.total),
-            color_window=color_window(self.step, cfg.color, self.total) if training else float("inf"),
         )
 
     def train_step(self) -> dict[str, float]:

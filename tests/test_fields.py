@@ -128,18 +128,3 @@ def test_rays_that_reach_the_floor_inside_the_sphere_take_the_floors_colour():
             colours.append(model.render(rays_o, rays_d, state)["color"])
     changed = (colours[1] - colours[0]).abs().amax(dim=-1)
     assert changed[0] > 0.05 and bool((changed[1:] == 0).all())
-
-
-def test_colour_network_sees_the_points_frequencies_only_as_its_window_opens():
-    """Frequency k of the point's encoding is off below window k, fully on above k + 1 and eased between; the
-    raw point always passes, and an open window is the plain encoding."""
-    torch.manual_seed(0)
-    net = ColorNetwork(d_feature=8, d_hidden=32, n_layers=2, view_dependent=False, n_freqs_point=4)
-    x = torch.rand(50, 3)
-    closed, half, full = (net._encode_point(x, w) for w in (0.0, 1.5, float("inf")))
-    assert torch.equal(closed[:, :3], x) and bool((closed[:, 3:] == 0).all())
-    blocks = half[:, 3:].reshape(50, 4, 6)
-    full_blocks = full[:, 3:].reshape(50, 4, 6)
-    assert torch.allclose(blocks[:, 0], full_blocks[:, 0]) and torch.allclose(blocks[:, 1], 0.5 * full_blocks[:, 1])
-    assert bool((blocks[:, 2:] == 0).all())
-    assert torch.equal(net._encode_point(x, 4.0), full)

@@ -11,7 +11,7 @@ from neudf_core import synthetic
 from neudf_core.cli import register
 from neudf_core.config import RETIRED, load_config, load_saved_config
 from neudf_core.dataset import DatasetError, load_dataset
-from neudf_core.trainer import RunError, color_window, learning_rate, load_model, sharpness_floor, train
+from neudf_core.trainer import RunError, learning_rate, load_model, sharpness_floor, train
 
 
 @pytest.fixture(scope="module")
@@ -233,15 +233,6 @@ def test_sharpness_floor_rises_geometrically_for_the_neudf_weight_only():
     assert sharpness_floor(5000, cfg, 1000) == pytest.approx(500.0)  # past the schedule it stays at the end
     assert sharpness_floor(500, cfg.model_copy(update={"sharpness_floor_end": 0.0}), 1000) == 0.0
     assert sharpness_floor(500, cfg.model_copy(update={"weight": "neus_sdf"}), 1000) == 0.0
-
-
-def test_colour_frequencies_of_the_point_open_over_their_ramp_only():
-    cfg = load_config("quick", {"color": {"n_freqs_point": 6, "point_freqs_ramp": [0.3, 0.7]}}).color
-    assert color_window(0, cfg, 1000) == 0.0 and color_window(300, cfg, 1000) == 0.0
-    assert color_window(500, cfg, 1000) == pytest.approx(3.0)
-    assert color_window(700, cfg, 1000) == 6.0 and color_window(2000, cfg, 1000) == 6.0
-    assert color_window(0, cfg.model_copy(update={"point_freqs_ramp": (0.0, 0.0)}), 1000) == float("inf")
-    assert color_window(0, cfg.model_copy(update={"n_freqs_point": 0}), 1000) == float("inf")
 
 
 def test_training_renders_with_r_at_or_above_its_floor(sheet_scene, tmp_path):
