@@ -109,6 +109,11 @@ class LossConfig(_Block):
     zero_region_weight: float = Field(
         0.0, description="not in the paper (0 = off): penalise h below -zero_region_margin (Psi ~ 0 over a volume)")
     zero_region_margin: float = Field(0.03, description="depth of h (before the output activation) where it acts")
+    point_prior_weight: float = Field(
+        0.0, description="not in the paper (0 = off): penalise the object's opacity on rays that pass no sparse "
+        "point of the object (DATA/object_points.npy), so the surroundings are not drawn inside the sphere")
+    point_prior_radius: float = Field(
+        0.06, gt=0, description="a ray passes a sparse point when it comes this close (unit sphere) in the image")
 
 
 class OptimConfig(_Block):

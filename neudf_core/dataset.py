@@ -24,6 +24,7 @@ class DatasetError(ValueError):
 
 
 REGION_FILE = "region.json"  # optional: {"floor_y": height in the unit sphere (y up) below which lies no object}
+OBJECT_POINTS_FILE = "object_points.npy"  # optional: (M, 3) sparse points of the object, in the unit sphere
 
 
 @dataclass
@@ -34,6 +35,7 @@ class Dataset:
     c2w: Tensor  # (N, 4, 4), OpenCV camera to unit-sphere world
     names: list[str]
     object_pixels: Tensor | None = None  # flat (image, y, x) indices of the pixels whose rays meet the unit sphere
+    near_points: Tensor | None = None  # (N, H, W) bool: the pixel's ray passes near a sparse point of the object
 
     @property
     def n_images(self) -> int:
@@ -50,8 +52,9 @@ class Dataset:
     def to(self, device: str | torch.device) -> "Dataset":
         masks = self.masks.to(device) if self.masks is not None else None
         pixels = self.object_pixels.to(device) if self.object_pixels is not None else None
+        near = self.near_points.to(device) if self.near_points is not None else None
         return Dataset(self.images.to(device), masks, self.intrinsics.to(device), self.c2w.to(device), self.names,
-                       pixels)
+                       pixels, near)
 
     def rays(self, image_idx: Tensor, pixel_y: Tensor, pixel_x: Tensor) -> tuple[Tensor, Tensor]:
         """World-space origins and unit directions through pixel centres."""
@@ -74,6 +77,28 @@ class Dataset:
             hit = torch.nonzero(closest < 1.0)[:, 0]
             found.append(i * self.height * self.width + hit)
         self.object_pixels = torch.cat(found)
+
+    def find_near_points(self, points: Tensor, radius: float) -> None:
+        """Mark, per image, the pixels within ``radius`` (unit sphere, at the point's depth) of a projected
+        sparse point of the object: where the object may be. The rest of the sphere's pixels see past it."""
+        near = torch.zeros(self.n_images, self.height, self.width, dtype=torch.bool)
+        points = points.to(self.c2w.device).float()
+        for i in range(self.n_images):
+            rotation, origin = self.c2w[i, :3, :3], self.c2w[i, :3, 3]
+            cam = (points - origin) @ rotation  # world to the camera's axes (OpenCV: z forward)
+            cam = cam[cam[:, 2] > 1e-3]
+            pix = cam @ self.intrinsics[i].T
+            uv = pix[:, :2] / pix[:, 2:3]
+            inside = (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & (uv[:, 1] < self.height)
+            if not bool(inside.any()):
+                continue
+            hit = torch.zeros(self.height, self.width, device=uv.device)
+            hit[uv[inside, 1].long(), uv[inside, 0].long()] = 1.0
+            # one splat size per image: the radius seen at the points' median depth
+            r_px = max(1, round(float(radius * self.intrinsics[i, 0, 0] / cam[inside, 2].median())))
+            grown = torch.nn.functional.max_pool2d(hit[None, None], 2 * r_px + 1, stride=1, padding=r_px)[0, 0]
+            near[i] = grown.cpu() > 0
+        self.near_points = near.to(self.images.device)
 
     def sample_rays(self, n_rays: int, images_per_batch: int, generator: torch.Generator | None = None,
                     object_share: float = 0.0) -> dict:
@@ -100,6 +125,8 @@ class Dataset:
         batch = {"rays_o": rays_o, "rays_d": rays_d, "color": self.images[image_idx, y, x]}
         if self.masks is not None:
             batch["mask"] = self.masks[image_idx, y, x]
+        if self.near_points is not None:
+            batch["near_points"] = self.near_points[image_idx, y, x].float()
         return batch
 
     def image_rays(self, index: int, size: int) -> tuple[Tensor, Tensor, tuple[int, int]]:
@@ -212,6 +239,19 @@ def read_floor(root: str | Path) -> float | None:
     except (OSError, ValueError) as exc:
         raise DatasetError(f"cannot read {path}: {exc}") from exc
     return None if value is None else float(value)
+
+
+def read_object_points(root: str | Path) -> np.ndarray | None:
+    path = Path(root) / OBJECT_POINTS_FILE
+    if not path.is_file():
+        return None
+    try:
+        points = np.load(path)
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"cannot read {path}: {exc}") from exc
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise DatasetError(f"{path} holds an array of shape {points.shape}, not (M, 3) points")
+    return points
 
 
 def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False, sphere_px: int = 0) -> Dataset:

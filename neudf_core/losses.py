@@ -1,4 +1,5 @@
-"""Loss terms (paper Sec. 3.4: L = L_c + alpha L_e + beta L_m) and the zero-region penalty."""
+"""Loss terms (paper Sec. 3.4: L = L_c + alpha L_e + beta L_m), the zero-region penalty and the sparse-point
+prior."""
 
 from __future__ import annotations
 
@@ -33,6 +34,13 @@ def zero_region(raw: Tensor, valid: Tensor, margin: float) -> Tensor:
     inside whose sign changes are surfaces of their own. relu(-h - margin) acts on both.
     """
     return (torch.relu(-raw.float() - margin) * valid).sum() / valid.sum().clamp_min(1.0)
+
+
+def opacity_off_points(weight_sum: Tensor, near_points: Tensor) -> Tensor:
+    """The object's opacity on rays that pass no sparse point of the object, averaged over all rays (not in
+    the paper). Without masks, nothing else stops the object's field from drawing the room on a screen
+    inside the sphere; a sparse point is a feature seen from several views, which a screen cannot make."""
+    return (weight_sum * (1.0 - near_points)).mean()
 
 
 def psnr(pred: Tensor, target: Tensor) -> float:

@@ -19,7 +19,7 @@ from PIL import Image
 
 from neudf_core import losses
 from neudf_core.config import RendererConfig, TrainConfig, default_preset, load_config, load_saved_config
-from neudf_core.dataset import Dataset, load_dataset, read_floor
+from neudf_core.dataset import Dataset, load_dataset, read_floor, read_object_points
 from neudf_core.files import atomic_write
 from neudf_core.model import NeUDFModel, RenderState
 from neudf_core.numerics import flush_denormals
@@ -30,6 +30,7 @@ log = logging.getLogger(__name__)
 KEEP_CHECKPOINTS = 2
 # A run with a time budget and no iteration count stops on time alone.
 BUDGET_MAX_ITERS = 1_000_000
+MIN_PRIOR_POINTS = 50  # fewer sparse points of the object outline nothing: no point prior
 # What may change when a run is resumed with another --iters: the schedule, not the model.
 _SCHEDULE_FIELDS = {"optim": True, "log": True, "renderer": {"cos_anneal_iters"}}
 
@@ -184,6 +185,9 @@ class Trainer:
         loss = color_loss + cfg.loss.eikonal_weight * eik
         if cfg.loss.mask_weight > 0 and "mask" in batch:
             loss = loss + cfg.loss.mask_weight * losses.mask_bce(out["weight_sum"], batch["mask"])
+        if "near_points" in batch and cfg.loss.point_prior_weight > 0:
+            loss = loss + cfg.loss.point_prior_weight * losses.opacity_off_points(out["weight_sum"],
+                                                                                  batch["near_points"])
         if cfg.loss.zero_region_weight > 0 and not self.model.signed:
             loss = loss + cfg.loss.zero_region_weight * losses.zero_region(
                 out["raw"], out["inside"], cfg.loss.zero_region_margin)
@@ -334,6 +338,9 @@ def train(
     data = load_dataset(data_dir, cfg.data.max_size, cfg.data.use_masks, cfg.data.sphere_px)
     if cfg.optim.object_rays > 0:
         data.find_object_pixels()
+    points = read_object_points(data_dir) if cfg.loss.point_prior_weight > 0 else None
+    if points is not None and len(points) >= MIN_PRIOR_POINTS:
+        data.find_near_points(torch.from_numpy(points), cfg.loss.point_prior_radius)
     run_dir.mkdir(parents=True, exist_ok=True)
     cfg_file.write_text(cfg.model_dump_json(indent=2))
     trainer = Trainer(data, run_dir, cfg, device)

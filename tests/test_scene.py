@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from neudf_core import synthetic
 from tests.builders import encode_video, textured_sheet
@@ -43,6 +44,12 @@ def test_object_region_leaves_a_textured_floor_out(tmp_path):
     assert floor[:, 1].max() <= floor_y + 0.02  # ... and lies under the cut
     sheet = to_data(room.parts[0].vertices)
     assert np.linalg.norm(sheet, axis=1).max() < 1.0 and sheet[:, 1].min() > floor_y + 0.02
+
+    # The sparse points training looks for the object at: inside the sphere, above the floor, on the sheet.
+    points = np.load(data / "object_points.npy")
+    assert len(points) >= 50 and np.linalg.norm(points, axis=1).max() < 1.0 and points[:, 1].min() > floor_y
+    gap, _ = cKDTree(sheet).query(points)
+    assert np.mean(gap < 0.05) > 0.8
 
 
 def test_axes_point_and_upright_rotation():

@@ -17,9 +17,11 @@ From the pinhole model of the poses stage:
    radius shrinks, with a warning, when a camera came closer than that).
 
 Writes, for the registered frames only and in their order: DATA/image/*.png (renumbered, undistorted),
-DATA/frames.json (kept consistent with image/), DATA/cameras_sphere.npz (``world_mat_i`` = K [R | t] 4x4 from
-the upright world to pixels, ``scale_mat_i`` 4x4 from the unit sphere to that world) and DATA/cameras.png, a
-picture of the camera path and sparse points for the web page. Pixel centres sit at integer + 0.5 (COLMAP's
+DATA/frames.json (kept consistent with image/), DATA/cameras_sphere.npz (``world_mat_i`` = K [R | t] 4x4
+from the upright world to pixels, ``scale_mat_i`` 4x4 from the unit sphere to that world) and
+DATA/cameras.png, a picture of the camera path and sparse points for the web page; besides them
+DATA/region.json (the floor) and DATA/object_points.npy (the sparse points inside the unit sphere and above
+the floor, for training's optional point prior). Pixel centres sit at integer + 0.5 (COLMAP's
 and the synthetic renderer's convention). Figures go into ``capture.json`` under ``scene``, written last.
 """
 
@@ -35,7 +37,7 @@ import numpy as np
 import pycolmap
 from pydantic import BaseModel, ConfigDict, Field
 
-from neudf_core.dataset import REGION_FILE
+from neudf_core.dataset import OBJECT_POINTS_FILE, REGION_FILE
 from neudf_core.files import atomic_write, link_or_copy, write_json_atomic
 from neudf_core.progress import ProgressFn, null_progress
 from worker.capture.poses import colmap_dir, undistorted_dir
@@ -400,6 +402,7 @@ def write_scene(
     floor_unit = None if floor is None or floor / sphere_radius <= -1.0 else round(float(floor / sphere_radius), 4)
     write_json_atomic(data_dir / REGION_FILE, {"floor_y": floor_unit})
     scene["floor_y_unit"] = floor_unit
+    scene["object_points_inside"] = _write_object_points(data_dir, unit_points, floor_unit)
     under = floor is not None and floor_unit is None
     scene["floor_search"] = floor_search + (", under the unit sphere" if under else "")
     if warnings:
@@ -409,6 +412,17 @@ def write_scene(
     update_capture_json(data_dir, seconds={"scene": seconds}, scene_options=opts.model_dump(), scene=scene)
     progress(1.0, f"{len(entries)} cameras normalised", images=len(entries))
     return {**scene, "seconds": round(seconds, 3)}
+
+
+def _write_object_points(data_dir: Path, unit_points: np.ndarray, floor_y: float | None) -> int:
+    """DATA/object_points.npy: the sparse points inside the unit sphere and above the floor, where training
+    looks for the object. Returns how many."""
+    keep = np.linalg.norm(unit_points, axis=1) < 1.0
+    if floor_y is not None:
+        keep &= unit_points[:, 1] > floor_y
+    with atomic_write(data_dir / OBJECT_POINTS_FILE) as tmp:
+        np.save(tmp, unit_points[keep].astype(np.float32))
+    return int(keep.sum())
 
 
 def _read_capture(data_dir: Path) -> dict[str, Any]:
