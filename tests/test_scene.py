@@ -14,7 +14,7 @@ from tests.builders import encode_video, textured_sheet
 from worker.capture.evaluate import align_cameras, load_dataset_cameras
 from worker.capture.poses import PoseOptions
 from worker.capture.run import run_capture
-from worker.capture.scene import axes_point, up_direction, upright_rotation
+from worker.capture.scene import axes_point, floor_height, up_direction, upright_rotation
 
 
 @pytest.mark.slow
@@ -66,3 +66,23 @@ def test_axes_point_and_upright_rotation():
     rotation = upright_rotation(np.array([0.0, 0.0, 2.0]), c2w[0, :3, 3] - target)
     assert np.allclose(rotation @ rotation.T, np.eye(3))
     assert np.allclose(rotation @ np.array([0.0, 0.0, 1.0]), [0, 1, 0], atol=1e-6)
+
+
+def test_floor_under_an_object_rich_in_features_is_found_and_a_rim_is_not():
+    """A labelled can holds most of the sparse points, spread over its height; the tiled floor around its
+    foot is a thin level, fewer points than the can but much denser than any of the can's own levels, and
+    wider. A can without a floor has a bottom rim, not a floor."""
+    rng = np.random.default_rng(0)
+    n_can = 8000
+    angle = rng.uniform(0, 2 * np.pi, n_can)
+    can_h = rng.uniform(-0.5, 0.5, n_can)
+    can_r = np.full(n_can, 0.2)
+    ring_r = 0.2 * np.sqrt(rng.uniform(0.0, 1.0, 400))  # the bottom, seen a little from above
+    floor_r = rng.uniform(0.25, 0.9, 800)
+    band = 0.02
+    heights = np.concatenate([can_h, np.full(400, -0.5), rng.normal(-0.55, 0.004, 800)])
+    spread = np.concatenate([can_r, ring_r, floor_r])
+    level, found = floor_height(heights, spread, band, 20)
+    assert level is not None and abs(level - (-0.55 + band)) < band, found
+    without = heights[: n_can + 400], spread[: n_can + 400]
+    assert floor_height(*without, band, 20)[0] is None

@@ -188,11 +188,17 @@ def floor_height(heights: np.ndarray, spread: np.ndarray, band: float, min_point
     if len(edges) < 2:
         return None, "the points below the object lie in one thin level"
     counts, edges = np.histogram(heights[below], bins=edges)
-    level = float(edges[np.argmax(counts)] + band / 2)
+    peak = int(np.argmax(counts))
+    level = float(edges[peak] + band / 2)
     on = np.abs(heights - level) < band
     above = heights > level + band
-    found = f"{int(on.sum())} of {len(heights)} points on the densest level below, {int(above.sum())} above it"
-    if on.sum() < max(min_points, 0.1 * len(heights)) or above.sum() < min_points:
+    # A floor is a level much denser than the object's own levels above it; an object rich in features (a
+    # labelled can) may hold most of the points, so the floor is compared with levels, not with all points.
+    higher = counts[peak + 1:]
+    typical = float(np.median(higher[higher > 0])) if (higher > 0).any() else 0.0
+    found = (f"{int(on.sum())} of {len(heights)} points on the densest level below ({counts[peak]} in its bin, "
+             f"{typical:.0f} in a typical bin above), {int(above.sum())} above it")
+    if on.sum() < min_points or counts[peak] < 1.5 * typical or above.sum() < min_points:
         return None, found
     # A floor reaches beyond the object's footprint; a hem or a can's bottom rim does not.
     reach_on, reach_above = np.percentile(spread[on], 80), np.percentile(spread[above], 80)
