@@ -306,8 +306,13 @@ def test_point_prior_clears_what_no_sparse_point_backs(sheet_scene, tmp_path):
 
     data_dir = tmp_path / "data"
     shutil.copytree(sheet_scene, data_dir)
-    points = trimesh.load(sheet_scene / "mesh_gt.ply").vertices
-    np.save(data_dir / "object_points.npy", points[points[:, 0] < 0].astype(np.float32))
+    vertices = trimesh.load(sheet_scene / "mesh_gt.ply").vertices
+    half = vertices[vertices[:, 0] < 0].astype(np.float32)
+    np.save(data_dir / "object_points.npy", half)
+    data = load_dataset(data_dir, use_masks=True)
+    data.find_near_points(torch.from_numpy(half), radius=0.06)
+    idx = torch.nonzero((data.masks > 0.5) & ~data.near_points)[::7]  # the sheet no point backs
+    rays_o, rays_d = data.rays(idx[:, 0], idx[:, 1], idx[:, 2])
     base = {"data": {"white_background": True}, "optim": {"rays": 128, "object_rays": 0.9},
             "sampler": {"n_coarse": 24, "n_importance": 16}}
     opacity = {}
@@ -315,11 +320,6 @@ def test_point_prior_clears_what_no_sparse_point_backs(sheet_scene, tmp_path):
         run = tmp_path / f"run_{weight}"
         train(data_dir, run, preset="quick", iters=80, overrides={**base, "loss": {"point_prior_weight": weight}})
         model = load_model(run)
-        data = load_dataset(data_dir, use_masks=True)
-        data.find_near_points(torch.from_numpy(points[points[:, 0] < 0]).float(), radius=0.06)
-        unbacked = (data.masks > 0.5) & ~data.near_points
-        idx = torch.nonzero(unbacked)[::7]
-        rays_o, rays_d = data.rays(idx[:, 0], idx[:, 1], idx[:, 2])
         with torch.no_grad():
             out = model.render(rays_o, rays_d, RenderState(cos_anneal=1.0), None)
         opacity[weight] = float(out["weight_sum"].mean())
