@@ -20,6 +20,7 @@ import argparse
 import json
 import os
 import platform
+import shutil
 import sys
 import time
 from fractions import Fraction
@@ -92,6 +93,16 @@ def printer(label: str = "", every_s: float = 10.0) -> Any:
             last[0], last[1] = time.perf_counter(), stage
 
     return report
+
+
+def reuse_capture(source: Path, job: Path) -> None:
+    """Give ``job`` the finished capture of ``source`` (same video), so a baseline trains on the same cameras."""
+    if (job / "stages" / "scene.json").is_file() or not (source / "stages" / "scene.json").is_file():
+        return
+    shutil.copytree(source / "data", job / "data", dirs_exist_ok=True)
+    (job / "stages").mkdir(parents=True, exist_ok=True)
+    for stage in ("frames", "poses", "scene"):
+        shutil.copy2(source / "stages" / f"{stage}.json", job / "stages" / f"{stage}.json")
 
 
 def truth_figures(data: Path, true_c2w: np.ndarray, mesh_path: Path, K_true: np.ndarray) -> dict[str, Any]:

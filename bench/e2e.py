@@ -29,7 +29,6 @@ import argparse
 import json
 import os
 import platform
-import shutil
 import sys
 import time
 from fractions import Fraction
@@ -41,7 +40,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.capture import printer  # noqa: E402
+from bench.capture import printer, reuse_capture  # noqa: E402
 from neudf_core import synthetic  # noqa: E402
 from neudf_core.metrics import evaluate, load_mesh  # noqa: E402
 from neudf_core.device import resolve_device  # noqa: E402
@@ -54,7 +53,6 @@ MESH_DIR = ROOT.parent / "shared" / "data" / "meshes"
 RESULTS = ROOT / "bench" / "results"
 PICTURES = ROOT / "docs" / "images"
 WIDTH, HEIGHT, FPS, SECONDS = 720, 1280, 30, 8
-CAPTURE_STAGES = ("frames", "poses", "scene")
 
 
 HELD_OUT = ("bowl", "flag", "holed_sheet")
@@ -128,16 +126,6 @@ def cached_video(work: Path, mesh_path: Path, seed: int) -> tuple[Path, np.ndarr
         print(f"rendering {mesh_path.stem}: {FPS * SECONDS} frames {WIDTH}x{HEIGHT} -> {video}", flush=True)
         np.save(cams, render_video(video, load_garment(mesh_path), seed))
     return video, np.load(cams)
-
-
-def reuse_capture(source: Path, job: Path) -> None:
-    """Give ``job`` the finished capture of ``source`` (same video), so a baseline trains on the same cameras."""
-    if (job / "stages" / "scene.json").is_file() or not (source / "stages" / "scene.json").is_file():
-        return
-    shutil.copytree(source / "data", job / "data", dirs_exist_ok=True)
-    (job / "stages").mkdir(parents=True, exist_ok=True)
-    for stage in CAPTURE_STAGES:
-        shutil.copy2(source / "stages" / f"{stage}.json", job / "stages" / f"{stage}.json")
 
 
 def camera_similarity(job: Path, true_c2w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -7,8 +7,9 @@ as surface shows up there; an object standing on the floor touches it with its f
 
     .venv/bin/python bench/video.py                       # ../shared/data/video/beer.mp4, the defaults
     .venv/bin/python bench/video.py clip.mp4 --minutes 5  # another video, another budget
+    .venv/bin/python bench/video.py --preset P --tag T    # a variant on the default job's capture
 
-Writes bench/results/video_<name>_<device>.json and docs/images/video_<name>.png.
+Writes bench/results/video_<name>_<device>[_<tag>].json and docs/images/video_<name>[_<tag>].png.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.capture import printer  # noqa: E402
+from bench.capture import printer, reuse_capture  # noqa: E402
 from neudf_core import synthetic  # noqa: E402
 from neudf_core.dataset import read_floor  # noqa: E402
 from neudf_core.device import resolve_device  # noqa: E402
@@ -74,6 +75,8 @@ def main() -> None:
     parser.add_argument("video", nargs="?", type=Path, default=VIDEO)
     parser.add_argument("--minutes", type=float, help="Training budget (default: the job default).")
     parser.add_argument("--device", default="auto")
+    parser.add_argument("--preset", help="Training preset (default: the device's).")
+    parser.add_argument("--tag", help="Name of a variant: its own job folder and JSON, the default job's capture.")
     parser.add_argument("--work", type=Path, default=Path("/tmp/neudf-bench-video"), help="Job folders.")
     args = parser.parse_args()
     if not args.video.is_file():
@@ -81,14 +84,18 @@ def main() -> None:
 
     device = resolve_device(args.device)
     name = args.video.stem
-    job = args.work / f"{name}_{device}"
-    options = JobOptions(**({"minutes": args.minutes} if args.minutes is not None else {}))
+    variant = [args.tag] if args.tag else []
+    job = args.work / "_".join([name, device] + variant)
+    if args.tag:
+        reuse_capture(args.work / f"{name}_{device}", job)
+    chosen = {k: v for k, v in (("minutes", args.minutes), ("preset", args.preset)) if v is not None}
+    options = JobOptions(**chosen)
     t0 = time.perf_counter()
     metrics = run_pipeline(args.video, job, options, printer(name, every_s=30), device=device)
     wall = time.perf_counter() - t0
     stages = {s: json.loads((job / "stages" / f"{s}.json").read_text()) for s in STAGES}
     mesh = load_mesh(job / "mesh" / "mesh.ply")
-    picture(PICTURES / f"video_{name}.png", mesh)
+    picture(PICTURES / f"video_{'_'.join([name] + variant)}.png", mesh)
     lo, hi = mesh.bounds
     row = {
         "video": name, "device": device, "options": options.model_dump(exclude_none=True),
@@ -103,7 +110,7 @@ def main() -> None:
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
     RESULTS.mkdir(parents=True, exist_ok=True)
-    out = RESULTS / f"video_{name}_{device}.json"
+    out = RESULTS / f"video_{job.name}.json"
     out.write_text(json.dumps(row, indent=2))
     m = row["minutes"]
     print("| video | faces | loops | on the floor (area share, width) | min: " + " / ".join(STAGES) + " | total min |")

@@ -15,10 +15,11 @@ import pytest
 import torch
 import trimesh
 
+from neudf_core import synthetic
 from neudf_core.export import export_mesh
 from neudf_core.extract import mesh_run
 from neudf_core.meshing import NoSurfaceError, color_vertices, extract_mesh
-from neudf_core.meshing.cleanup import drop_floor_pieces
+from neudf_core.meshing.cleanup import drop_floor_pieces, trim_floor_skirt
 from neudf_core.metrics import boundary_loops
 
 RES = 128
@@ -245,6 +246,32 @@ def test_sheets_resting_on_the_floor_cut_are_dropped_and_what_stands_there_kept(
     assert len(alone.faces) == len(shadow.faces)
 
 
+def test_a_shadow_skirt_fused_to_a_standing_object_is_trimmed_and_its_own_foot_kept():
+    floor = -0.7
+    can = trimesh.creation.cylinder(radius=0.25, height=1.0, sections=48).subdivide_to_size(0.05)
+    can.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    can.apply_translation([0.0, floor + 0.5 + 0.004, 0.0])  # stands on the floor, its bottom on the cut
+    skirt = trimesh.Trimesh(*_flat_sheet(np.linspace(-0.6, 0.6, 25), floor + 0.02))  # the shadow, drawn as surface
+    skirt.update_faces(np.linalg.norm(skirt.triangles_center[:, [0, 2]], axis=1) > 0.25)
+    mesh = trimesh.util.concatenate([can, skirt])
+    out = trim_floor_skirt(mesh.copy(), floor, band=0.1, above=0.1, margin=0.03)
+    spread = np.linalg.norm(out.triangles_center[:, [0, 2]], axis=1)
+    assert spread.max() < 0.25 + 0.03 + 0.05  # the skirt is gone, up to the margin and its faces' size
+    assert out.metadata["meshing"]["faces_floor_skirt"] >= 0.9 * len(skirt.faces)
+    assert out.vertices[:, 1].max() == pytest.approx(can.vertices[:, 1].max())
+    top_and_bottom = np.abs(can.face_normals[:, 1]) > 0.9
+    low_caps = top_and_bottom & (can.triangles_center[:, 1] < floor + 0.1)
+    kept = {tuple(np.round(c, 6)) for c in out.triangles_center}
+    assert all(tuple(np.round(c, 6)) in kept for c in can.triangles_center[low_caps])  # its bottom, under its footprint
+
+    # a bowl standing on the floor widens upwards: all of it is kept
+    bowl = synthetic.procedural_mesh("bowl", size=1.0)
+    bowl.apply_translation([0.0, floor + 0.004 - bowl.vertices[:, 1].min(), 0.0])
+    assert len(trim_floor_skirt(bowl.copy(), floor, 0.1, 0.1, 0.03).faces) == len(bowl.faces)
+    # a sheet lying on the floor, nothing above it: kept
+    assert len(trim_floor_skirt(skirt.copy(), floor, 0.1, 0.1, 0.03).faces) == len(skirt.faces)
+
+
 def _flat_sheet(grid: np.ndarray, y: float) -> tuple[np.ndarray, np.ndarray]:
     xs, zs = np.meshgrid(grid, grid, indexing="ij")
     vertices = np.stack([xs.ravel(), np.full(xs.size, y), zs.ravel()], -1)
@@ -291,8 +318,6 @@ def test_vertex_colours_look_along_the_negated_normal_and_survive_glb(tmp_path):
 
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
-    from neudf_core import synthetic
-
     out = tmp_path_factory.mktemp("mesh_run_scene")
     return synthetic.write_neus_dataset(out, synthetic.procedural_mesh("sheet"), n_views=8, size=32)
 

@@ -250,6 +250,46 @@ def drop_floor_pieces(mesh: trimesh.Trimesh, floor_y: float, band: float, touch:
     return mesh
 
 
+def trim_floor_skirt(
+    mesh: trimesh.Trimesh, floor_y: float, band: float, above: float, margin: float
+) -> trimesh.Trimesh:
+    """Drop the faces lying within ``band`` above the floor cut outside the object's own footprint.
+
+    An object standing on the floor casts a shadow there, and training may draw it as a skirt of surface
+    fused to the object's foot (one piece, so :func:`drop_floor_pieces` keeps it). The footprint is the
+    convex hull, seen from above, of the vertices from ``band`` to ``band + above`` over the cut, grown by
+    ``margin``: what the object is just above the floor. Nothing is trimmed when no vertex lies in that
+    slab (an object lying flat on the floor, or one hanging above it). A foot that flares out within
+    ``band`` of the floor is trimmed as a shadow would be.
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    if len(mesh.faces) == 0:
+        return mesh
+    face_y = mesh.vertices[mesh.faces][:, :, 1]
+    low = face_y.max(axis=1) < floor_y + band
+    height = mesh.vertices[:, 1]
+    slab = mesh.vertices[(height >= floor_y + band) & (height < floor_y + band + above)]
+    if not low.any() or len(slab) < 3:
+        return mesh
+    try:
+        hull = ConvexHull(slab[:, [0, 2]])
+    except QhullError:  # the slab's vertices lie on a line seen from above
+        return mesh
+    xz = mesh.triangles_center[low][:, [0, 2]]
+    outside = (xz @ hull.equations[:, :2].T + hull.equations[:, 2]).max(axis=1) > margin
+    if not outside.any():
+        return mesh
+    keep = np.ones(len(mesh.faces), bool)
+    keep[np.nonzero(low)[0][outside]] = False
+    info = mesh.metadata.get("meshing", {})
+    log.info("trimmed %d faces spreading on the floor beyond the object's footprint", int((~keep).sum()))
+    mesh.update_faces(keep)
+    mesh.remove_unreferenced_vertices()
+    mesh.metadata["meshing"] = {**info, "faces_floor_skirt": int((~keep).sum())}
+    return mesh
+
+
 # --------------------------------------------------------------------------- visibility
 
 
