@@ -95,7 +95,8 @@ def main() -> None:
     wall = time.perf_counter() - t0
     stages = {s: json.loads((job / "stages" / f"{s}.json").read_text()) for s in STAGES}
     mesh = load_mesh(job / "mesh" / "mesh.ply")
-    picture(PICTURES / f"video_{'_'.join([name] + variant)}.png", mesh)
+    image = PICTURES / f"video_{'_'.join([name] + variant)}.png"
+    picture(image, mesh)
     lo, hi = mesh.bounds
     row = {
         "video": name, "device": device, "options": options.model_dump(exclude_none=True),
@@ -119,7 +120,7 @@ def main() -> None:
                 else "no floor found")
     print(f"| {name} | {row['faces']} | {row['boundary_loops']} | {on_floor} | "
           f"{' / '.join(f'{m[s]:.1f}' for s in STAGES)} | {row['minutes_total']:.1f} |")
-    print(f"wrote {out} and {PICTURES / f'video_{name}.png'}")
+    print(f"wrote {out} and {image}")
 
 
 if __name__ == "__main__":
