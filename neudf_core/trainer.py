@@ -188,7 +188,8 @@ class Trainer:
         if "near_points" in batch and cfg.loss.point_prior_weight > 0:
             loss = loss + cfg.loss.point_prior_weight * losses.opacity_off_points(out["weight_sum"],
                                                                                   batch["near_points"])
-        if cfg.loss.zero_region_weight > 0 and not self.model.signed:
+        zero_region_on = self.step >= cfg.loss.zero_region_from * self.total
+        if cfg.loss.zero_region_weight > 0 and not self.model.signed and zero_region_on:
             loss = loss + cfg.loss.zero_region_weight * losses.zero_region(
                 out["raw"], out["inside"], cfg.loss.zero_region_margin)
         self.optimizer.zero_grad(set_to_none=True)

@@ -224,6 +224,19 @@ def test_tiny_floating_pieces_are_dropped():
     assert len(kept.split(only_watertight=False)) == 2
 
 
+def test_holes_the_size_of_a_flaw_are_closed_and_openings_kept():
+    small, large = (torch.tensor([-0.3, 0.0]), 0.03), (torch.tensor([0.25, 0.1]), 0.1)  # perimeters 0.19, 0.63
+
+    def sheet_with_two_holes(p: torch.Tensor) -> torch.Tensor:
+        holes = [r - _hypot(p[:, 0] - c[0], p[:, 2] - c[1]) for c, r in (small, large)]
+        in_plane = torch.maximum(_square(p[:, 0], p[:, 2]), torch.maximum(*holes)).clamp(min=0)
+        return _hypot(p[:, 1] - Y0, in_plane)
+
+    mesh = extract_mesh(sheet_with_two_holes, method="meshudf", resolution=RES)
+    assert boundary_loops(mesh) == 2  # the sheet's edge and the large hole
+    assert boundary_loops(extract_mesh(sheet_with_two_holes, method="meshudf", resolution=RES, fill_holes=0)) == 3
+
+
 def test_sheets_resting_on_the_floor_cut_are_dropped_and_what_stands_there_kept():
     floor = -0.7
     grid = np.linspace(-0.4, 0.4, 9)

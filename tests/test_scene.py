@@ -68,6 +68,23 @@ def test_axes_point_and_upright_rotation():
     assert np.allclose(rotation @ np.array([0.0, 0.0, 1.0]), [0, 1, 0], atol=1e-6)
 
 
+def test_floor_under_an_object_poor_in_features_is_found():
+    """A smooth bowl gives few sparse points; strays in the column under it (clutter, the room) spread as far
+    as the floor's points can, since the column bounds both, so the floor is told by its density alone."""
+    rng = np.random.default_rng(1)
+    band = 0.02
+    disc = lambda n: np.sqrt(rng.uniform(0.0, 1.0, n))  # noqa: E731  uniform over the column's cross-section
+    bowl_h, bowl_r = rng.uniform(-0.3, 0.2, 40), rng.uniform(0.0, 0.4, 40)
+    stray_h, stray_r = rng.uniform(-0.7, 0.9, 150), disc(150)
+    floor_h, floor_r = rng.normal(-0.8, 0.004, 5000), disc(5000)
+    level, found = floor_height(np.concatenate([bowl_h, stray_h, floor_h]),
+                                np.concatenate([bowl_r, stray_r, floor_r]), band, 20)
+    assert level is not None and abs(level - (-0.8 + band)) < band, found
+    faint = floor_height(np.concatenate([bowl_h, stray_h, floor_h[:25]]),
+                         np.concatenate([bowl_r, stray_r, floor_r[:25]]), band, 20)
+    assert faint[0] is None, faint[1]  # a level only a few times denser must also reach wider
+
+
 def test_floor_under_an_object_rich_in_features_is_found_and_a_rim_is_not():
     """A labelled can holds most of the sparse points, spread over its height; the tiled floor around its
     foot is a thin level, fewer points than the can but much denser than any of the can's own levels, and

@@ -227,6 +227,18 @@ def test_zero_region_term_is_on_in_quick_only_and_trains(sheet_scene, tmp_path):
     assert result["iters"] == 3 and np.isfinite(result["loss"])
 
 
+def test_zero_region_term_waits_for_its_share_of_training(sheet_scene, tmp_path):
+    # started as a sphere (h < 0 inside), the field is penalised for that inside only from the share on
+    overrides = {"data": {"white_background": True}, "log": {"log_every": 1}, "optim": {"rays": 64},
+                 "field": {"init_radius": 0.5}, "loss": {"zero_region_from": 0.5}}
+    train(sheet_scene, tmp_path / "run", preset="quick", iters=8, overrides=overrides)
+    rows = _metrics(tmp_path / "run")
+    extra = [r["loss"] - r["color_loss"] - 0.1 * r["eikonal"] for r in rows]
+    assert [r["iter"] for r in rows] == list(range(1, 9))
+    assert max(abs(e) for e in extra[:4]) < 1e-5, extra
+    assert min(extra[4:]) > 1e-3, extra
+
+
 def test_sharpness_floor_rises_geometrically_for_the_neudf_weight_only():
     cfg = load_config("quick", {"renderer": {"sharpness_init": 20.0, "sharpness_floor_end": 500.0}}).renderer
     assert sharpness_floor(0, cfg, 1000) == pytest.approx(20.0)
