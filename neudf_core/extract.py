@@ -14,7 +14,7 @@ from neudf_core.export import SUFFIXES, export_mesh
 from neudf_core.meshing import (
     UNIT_BOUNDS, Method, NothingSeenError, color_vertices, cull_unseen, drop_small_components, extract_mesh,
 )
-from neudf_core.meshing.cleanup import drop_floor_pieces, keep_above, trim_floor_skirt
+from neudf_core.meshing.cleanup import drop_floor_pieces, fill_small_holes, keep_above, trim_floor_skirt
 from neudf_core.numerics import flush_denormals
 from neudf_core.progress import ProgressFn, null_progress, sub_progress
 from neudf_core.texture import bake_texture
@@ -95,9 +95,10 @@ def mesh_run(
         if len(mesh.faces) == 0:
             raise NothingSeenError(
                 f"no face is seen by {min_seen_fraction:.0%} of the {len(cameras)} cameras in {views}")
+        unseen = faces_before - len(mesh.faces)
+        mesh = fill_small_holes(mesh, info.get("fill_holes") or 0.0)  # what culling opened, as extraction does
         mesh.metadata["meshing"] = {**info, "views": str(views), "cameras": len(cameras),
-                                    "min_seen_fraction": min_seen_fraction,
-                                    "faces_unseen": faces_before - len(mesh.faces)}
+                                    "min_seen_fraction": min_seen_fraction, "faces_unseen": unseen}
     color_vertices(mesh, model.color, device=device, progress=sub_progress(report, 0.9, 0.98))
     mesh = decimate(mesh, faces)
     if texture_size > 0:
