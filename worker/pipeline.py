@@ -226,8 +226,8 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
     except ValueError as exc:  # a method that does not fit the field, ...
         raise StageError("mesh", str(exc)) from exc
     info = mesh.metadata.get("meshing", {})
-    return {f"mesh_{k}": info[k] for k in ("method", "resolution", "threshold", "faces_unseen", "faces_on_floor", "faces_floor_skirt")
-            if k in info}
+    keys = ("method", "resolution", "threshold", "faces_unseen", "faces_on_floor", "faces_floor_skirt")
+    return {f"mesh_{k}": info[k] for k in keys if k in info}
 
 
 def _export(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
