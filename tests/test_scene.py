@@ -30,7 +30,8 @@ def test_object_region_leaves_a_textured_floor_out(tmp_path):
     run_capture(video, data, n_frames=48, pose_options=PoseOptions(num_threads=1))
     floor_y = json.loads((data / "region.json").read_text())["floor_y"]
     record = json.loads((data / "capture.json").read_text())
-    assert floor_y is not None, {k: record.get(k) for k in ("frames_registered", "warnings", "scene")}
+    scene = record.get("scene", {})
+    assert floor_y is not None, (record.get("frames_registered"), scene.get("floor_search"), scene.get("up"))
 
     _, c2w = load_dataset_cameras(data)
     entries = json.loads((data / "frames.json").read_text())
