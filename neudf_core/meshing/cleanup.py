@@ -259,8 +259,8 @@ def trim_floor_skirt(
     fused to the object's foot (one piece, so :func:`drop_floor_pieces` keeps it). The footprint is the
     convex hull, seen from above, of the vertices from ``band`` to ``band + above`` over the cut, grown by
     ``margin``: what the object is just above the floor. Nothing is trimmed when no vertex lies in that
-    slab (an object lying flat on the floor, or one hanging above it). A foot that flares out within
-    ``band`` of the floor is trimmed as a shadow would be.
+    slab (an object lying flat on the floor, or one hanging above it), or when that would drop half the
+    faces or more. A foot that flares out within ``band`` of the floor is trimmed as a shadow would be.
     """
     from scipy.spatial import ConvexHull, QhullError
 
@@ -278,7 +278,7 @@ def trim_floor_skirt(
         return mesh
     xz = mesh.triangles_center[low][:, [0, 2]]
     outside = (xz @ hull.equations[:, :2].T + hull.equations[:, 2]).max(axis=1) > margin
-    if not outside.any():
+    if not outside.any() or outside.sum() > len(mesh.faces) / 2:  # a skirt is a fringe, not most of the object
         return mesh
     keep = np.ones(len(mesh.faces), bool)
     keep[np.nonzero(low)[0][outside]] = False
