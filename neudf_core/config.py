@@ -117,6 +117,11 @@ class LossConfig(_Block):
         "point of the object (DATA/object_points.npy), so the surroundings are not drawn inside the sphere")
     point_prior_radius: float = Field(
         0.06, gt=0, description="a ray passes a sparse point when it comes this close (unit sphere) in the image")
+    point_surface_weight: float = Field(
+        0.0, ge=0.0, description="not in the paper (0 = off): pull Psi towards 0 at the object's sparse points "
+        "(DATA/object_points.npy), so the surface grows where features were triangulated, not only where the "
+        "field's start puts it")
+    point_surface_batch: int = Field(512, ge=1, description="sparse points drawn per iteration for that term")
 
 
 class OptimConfig(_Block):

@@ -1,5 +1,5 @@
 """Loss terms (paper Sec. 3.4: L = L_c + alpha L_e + beta L_m), the zero-region penalty and the sparse-point
-prior."""
+priors."""
 
 from __future__ import annotations
 
@@ -41,6 +41,12 @@ def opacity_off_points(weight_sum: Tensor, near_points: Tensor) -> Tensor:
     the paper). Without masks, nothing else stops the object's field from drawing the room on a screen
     inside the sphere; a sparse point is a feature seen from several views, which a screen cannot make."""
     return (weight_sum * (1.0 - near_points)).mean()
+
+
+def udf_at_points(psi: Tensor) -> Tensor:
+    """Mean Psi at sparse points of the object (not in the paper; Geo-NeuS supervises an SDF so). A point
+    triangulated from several views lies on the surface; L1, so a stray point pulls less than a square would."""
+    return psi.float().abs().mean()
 
 
 def psnr(pred: Tensor, target: Tensor) -> float:

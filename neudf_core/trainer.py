@@ -108,8 +108,11 @@ def load_model(run_dir: str | Path, device: str = "cpu") -> NeUDFModel:
 
 
 class Trainer:
-    def __init__(self, data: Dataset, run_dir: Path, cfg: TrainConfig, device: str):
+    def __init__(self, data: Dataset, run_dir: Path, cfg: TrainConfig, device: str,
+                 surface_points: torch.Tensor | None = None):
         self.data, self.run_dir, self.cfg, self.device = data.to(device), run_dir, cfg, device
+        # the object's sparse points, where the point-surface term pulls Psi to 0 (None: the term is off)
+        self.surface_points = surface_points.float().to(device) if surface_points is not None else None
         torch.manual_seed(cfg.seed)
         self.model = NeUDFModel(cfg).to(device)
         self.optimizer = torch.optim.Adam(self._param_groups(), lr=cfg.optim.lr)
@@ -188,6 +191,8 @@ class Trainer:
         if "near_points" in batch and cfg.loss.point_prior_weight > 0:
             loss = loss + cfg.loss.point_prior_weight * losses.opacity_off_points(out["weight_sum"],
                                                                                   batch["near_points"])
+        if self.surface_points is not None:
+            loss = loss + cfg.loss.point_surface_weight * losses.udf_at_points(self._udf_at_sparse_points())
         zero_region_on = self.step >= cfg.loss.zero_region_from * self.total
         if cfg.loss.zero_region_weight > 0 and not self.model.signed and zero_region_on:
             loss = loss + cfg.loss.zero_region_weight * losses.zero_region(
@@ -199,6 +204,10 @@ class Trainer:
         return {"loss": float(loss.detach()), "color_loss": float(color_loss.detach()), "eikonal": float(eik.detach()),
                 "psnr": losses.psnr(out["color"], batch["color"]), "sharpness": float(out["sharpness"]),
                 "weight_sum": float(out["weight_sum"].detach().mean()), "lr": lr}
+
+    def _udf_at_sparse_points(self) -> torch.Tensor:
+        pick = torch.randint(len(self.surface_points), (self.cfg.loss.point_surface_batch,), generator=self.generator)
+        return self.model.udf(self.surface_points[pick.to(self.device)])
 
     @staticmethod
     def _relaxed_sphere(batch: dict, out: dict) -> torch.Tensor:
@@ -339,12 +348,16 @@ def train(
     data = load_dataset(data_dir, cfg.data.max_size, cfg.data.use_masks, cfg.data.sphere_px)
     if cfg.optim.object_rays > 0:
         data.find_object_pixels()
-    points = read_object_points(data_dir) if cfg.loss.point_prior_weight > 0 else None
-    if points is not None and len(points) >= MIN_PRIOR_POINTS:
+    uses_points = cfg.loss.point_prior_weight > 0 or cfg.loss.point_surface_weight > 0
+    points = read_object_points(data_dir) if uses_points else None
+    if points is None or len(points) < MIN_PRIOR_POINTS:
+        points = None
+    if points is not None and cfg.loss.point_prior_weight > 0:
         data.find_near_points(torch.from_numpy(points), cfg.loss.point_prior_radius)
+    surface_points = torch.from_numpy(points) if points is not None and cfg.loss.point_surface_weight > 0 else None
     run_dir.mkdir(parents=True, exist_ok=True)
     cfg_file.write_text(cfg.model_dump_json(indent=2))
-    trainer = Trainer(data, run_dir, cfg, device)
+    trainer = Trainer(data, run_dir, cfg, device, surface_points)
     trainer.resume()
     result = trainer.fit(progress, budget_s=minutes * 60 if minutes is not None else None)
     result.update(preset=cfg.preset, device=device, images=data.n_images, image_size=[data.width, data.height])
