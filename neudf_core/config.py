@@ -122,6 +122,10 @@ class LossConfig(_Block):
         "(DATA/object_points.npy), so the surface grows where features were triangulated, not only where the "
         "field's start puts it")
     point_surface_batch: int = Field(512, ge=1, description="sparse points drawn per iteration for that term")
+    point_surface_until: float = Field(
+        1.0, gt=0.0, le=1.0, description="the share of training over which that term fades linearly to 0: it "
+        "places the surface early, and the colours alone shape it at the end (noisy points held to the end "
+        "draw stacked sheets)")
 
 
 class OptimConfig(_Block):

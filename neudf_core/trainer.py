@@ -56,6 +56,11 @@ def cos_anneal_ratio(step: int, anneal_iters: int) -> float:
     return 1.0 if anneal_iters <= 0 else min(1.0, step / anneal_iters)
 
 
+def point_surface_scale(step: int, until: float, total: int) -> float:
+    """The point-surface term's share of its weight at ``step``: 1 at the start, 0 from ``until`` of training."""
+    return max(0.0, 1.0 - step / max(until * total, 1.0))
+
+
 def sharpness_floor(step: int, cfg_renderer: RendererConfig, total: int) -> float:
     """The floor on NeUDF's r at ``step``: geometric from sharpness_init to sharpness_floor_end; 0 when off.
 
@@ -191,8 +196,9 @@ class Trainer:
         if "near_points" in batch and cfg.loss.point_prior_weight > 0:
             loss = loss + cfg.loss.point_prior_weight * losses.opacity_off_points(out["weight_sum"],
                                                                                   batch["near_points"])
-        if self.surface_points is not None:
-            loss = loss + cfg.loss.point_surface_weight * losses.udf_at_points(self._udf_at_sparse_points())
+        fade = point_surface_scale(self.step, cfg.loss.point_surface_until, self.total)
+        if self.surface_points is not None and fade > 0:
+            loss = loss + fade * cfg.loss.point_surface_weight * losses.udf_at_points(self._udf_at_sparse_points())
         zero_region_on = self.step >= cfg.loss.zero_region_from * self.total
         if cfg.loss.zero_region_weight > 0 and not self.model.signed and zero_region_on:
             loss = loss + cfg.loss.zero_region_weight * losses.zero_region(

@@ -13,7 +13,7 @@ from neudf_core.cli import register
 from neudf_core.config import RETIRED, load_config, load_saved_config
 from neudf_core.dataset import DatasetError, load_dataset
 from neudf_core.model import RenderState
-from neudf_core.trainer import RunError, learning_rate, load_model, sharpness_floor, train
+from neudf_core.trainer import RunError, learning_rate, load_model, point_surface_scale, sharpness_floor, train
 
 
 @pytest.fixture(scope="module")
@@ -362,3 +362,11 @@ def test_point_surface_term_pulls_the_field_to_zero_at_sparse_points(sheet_scene
             elsewhere[weight] = float(model.udf(torch.from_numpy(vertices[1::2])).abs().mean())
     assert at_points[1.0] < 0.5 * at_points[0.0], at_points
     assert elsewhere[1.0] < 0.5 * elsewhere[0.0], elsewhere
+
+
+def test_point_surface_term_fades_to_nothing_at_its_share_of_training():
+    assert point_surface_scale(0, 0.5, 1000) == 1.0
+    assert point_surface_scale(250, 0.5, 1000) == 0.5
+    assert point_surface_scale(500, 0.5, 1000) == 0.0
+    assert point_surface_scale(900, 0.5, 1000) == 0.0
+    assert point_surface_scale(500, 1.0, 1000) == 0.5
