@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 import trimesh
 
-from neudf_core.dataset import load_cameras
+from neudf_core.dataset import FLOOR_SHADOW_BAND, load_cameras
 from neudf_core.decimate import decimate
 from neudf_core.export import SUFFIXES, export_mesh
 from neudf_core.meshing import (
@@ -24,8 +24,8 @@ from neudf_core.trainer import load_model
 # sheet learned over the floor of a garment video rose 0.10 above the cut; an object standing there rises higher.
 FLOOR_BAND = 0.15
 # Faces this low over the cut (unit sphere) and outside the footprint of the object SKIRT_ABOVE higher, grown
-# by SKIRT_MARGIN, are a shadow fused to a standing object's foot: beer.mp4's spread 0.05 over its floor.
-SKIRT_BAND, SKIRT_ABOVE, SKIRT_MARGIN = 0.1, 0.1, 0.03
+# by SKIRT_MARGIN, are a shadow fused to a standing object's foot.
+SKIRT_BAND, SKIRT_ABOVE, SKIRT_MARGIN = FLOOR_SHADOW_BAND, 0.1, 0.03
 
 
 def mesh_run(

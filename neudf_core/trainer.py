@@ -19,7 +19,7 @@ from PIL import Image
 
 from neudf_core import losses
 from neudf_core.config import RendererConfig, TrainConfig, default_preset, load_config, load_saved_config
-from neudf_core.dataset import Dataset, load_dataset, read_floor, read_object_points
+from neudf_core.dataset import FLOOR_SHADOW_BAND, Dataset, load_dataset, read_floor, read_object_points
 from neudf_core.files import atomic_write
 from neudf_core.model import NeUDFModel, RenderState
 from neudf_core.numerics import flush_denormals
@@ -307,6 +307,12 @@ class Trainer:
                 "iters_per_s": round((self.step - start_step) / max(session_s, 1e-9), 3)}
 
 
+def points_off_the_floor(points: np.ndarray, floor_y: float | None) -> np.ndarray:
+    """The sparse points the point-surface term may pull the surface onto: those just above the floor cut
+    are the floor's texture and the shadow's, and would draw a sheet of floor."""
+    return points if floor_y is None else points[points[:, 1] > floor_y + FLOOR_SHADOW_BAND]
+
+
 def _check_device(device: str) -> str:
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError("--device cuda asked for, but this machine has no CUDA device (use --device cpu)")
@@ -360,7 +366,10 @@ def train(
         points = None
     if points is not None and cfg.loss.point_prior_weight > 0:
         data.find_near_points(torch.from_numpy(points), cfg.loss.point_prior_radius)
-    surface_points = torch.from_numpy(points) if points is not None and cfg.loss.point_surface_weight > 0 else None
+    surface_points = None
+    if points is not None and cfg.loss.point_surface_weight > 0:
+        kept = points_off_the_floor(points, cfg.data.floor_y)
+        surface_points = torch.from_numpy(kept) if len(kept) >= MIN_PRIOR_POINTS else None
     run_dir.mkdir(parents=True, exist_ok=True)
     cfg_file.write_text(cfg.model_dump_json(indent=2))
     trainer = Trainer(data, run_dir, cfg, device, surface_points)

@@ -13,7 +13,8 @@ from neudf_core.cli import register
 from neudf_core.config import RETIRED, load_config, load_saved_config
 from neudf_core.dataset import DatasetError, load_dataset
 from neudf_core.model import RenderState
-from neudf_core.trainer import RunError, learning_rate, load_model, point_surface_scale, sharpness_floor, train
+from neudf_core.trainer import (RunError, learning_rate, load_model, point_surface_scale, points_off_the_floor,
+                               sharpness_floor, train)
 
 
 @pytest.fixture(scope="module")
@@ -370,3 +371,12 @@ def test_point_surface_term_fades_to_nothing_at_its_share_of_training():
     assert point_surface_scale(500, 0.5, 1000) == 0.0
     assert point_surface_scale(900, 0.5, 1000) == 0.0
     assert point_surface_scale(500, 1.0, 1000) == 0.5
+
+
+def test_point_surface_term_leaves_the_floor_and_the_shadow_out():
+    """Points of the floor's texture scatter just above the floor cut; pulled to Psi = 0 they draw a sheet of
+    floor, so the term only takes points clear of the cut (the object's own points higher up stay)."""
+    points = np.array([[0.3, -0.79, 0.1], [0.2, -0.72, 0.0], [0.0, -0.6, 0.0], [0.0, 0.4, 0.2]], dtype=np.float32)
+    kept = points_off_the_floor(points, -0.8)
+    assert kept.tolist() == points[2:].tolist()
+    assert len(points_off_the_floor(points, None)) == 4
