@@ -31,6 +31,9 @@ KEEP_CHECKPOINTS = 2
 # A run with a time budget and no iteration count stops on time alone.
 BUDGET_MAX_ITERS = 1_000_000
 MIN_PRIOR_POINTS = 50  # fewer sparse points of the object outline nothing: no point prior
+# A sparse point anchors the surface when this many others lie within this radius (unit sphere): a garment's
+# points have a dozen (median), the floor's scatter above the cut and a smooth bowl's few points none.
+ANCHOR_NEIGHBOURS, ANCHOR_RADIUS = 5, 0.05
 # What may change when a run is resumed with another --iters: the schedule, not the model.
 _SCHEDULE_FIELDS = {"optim": True, "log": True, "renderer": {"cos_anneal_iters"}}
 
@@ -307,10 +310,19 @@ class Trainer:
                 "iters_per_s": round((self.step - start_step) / max(session_s, 1e-9), 3)}
 
 
-def points_off_the_floor(points: np.ndarray, floor_y: float | None) -> np.ndarray:
-    """The sparse points the point-surface term may pull the surface onto: those just above the floor cut
-    are the floor's texture and the shadow's, and would draw a sheet of floor."""
-    return points if floor_y is None else points[points[:, 1] > floor_y + FLOOR_SHADOW_BAND]
+def surface_anchor_points(points: np.ndarray, floor_y: float | None) -> np.ndarray:
+    """The sparse points the point-surface term may pull the surface onto. Left out: those just above the
+    floor cut (the floor's texture and the shadow: they draw a sheet of floor) and those with fewer than
+    ANCHOR_NEIGHBOURS others within ANCHOR_RADIUS (a point of a textured object has neighbours; the floor's
+    scatter and strays stand alone, and a lone point would grow a speck of surface)."""
+    from scipy.spatial import cKDTree
+
+    if floor_y is not None:
+        points = points[points[:, 1] > floor_y + FLOOR_SHADOW_BAND]
+    if len(points) == 0:
+        return points
+    others = cKDTree(points).query_ball_point(points, ANCHOR_RADIUS, return_length=True) - 1
+    return points[others >= ANCHOR_NEIGHBOURS]
 
 
 def _check_device(device: str) -> str:
@@ -368,7 +380,7 @@ def train(
         data.find_near_points(torch.from_numpy(points), cfg.loss.point_prior_radius)
     surface_points = None
     if points is not None and cfg.loss.point_surface_weight > 0:
-        kept = points_off_the_floor(points, cfg.data.floor_y)
+        kept = surface_anchor_points(points, cfg.data.floor_y)
         surface_points = torch.from_numpy(kept) if len(kept) >= MIN_PRIOR_POINTS else None
     run_dir.mkdir(parents=True, exist_ok=True)
     cfg_file.write_text(cfg.model_dump_json(indent=2))

@@ -13,8 +13,8 @@ from neudf_core.cli import register
 from neudf_core.config import RETIRED, load_config, load_saved_config
 from neudf_core.dataset import DatasetError, load_dataset
 from neudf_core.model import RenderState
-from neudf_core.trainer import (RunError, learning_rate, load_model, point_surface_scale, points_off_the_floor,
-                               sharpness_floor, train)
+from neudf_core.trainer import (RunError, learning_rate, load_model, point_surface_scale,
+                               sharpness_floor, surface_anchor_points, train)
 
 
 @pytest.fixture(scope="module")
@@ -373,10 +373,15 @@ def test_point_surface_term_fades_to_nothing_at_its_share_of_training():
     assert point_surface_scale(500, 1.0, 1000) == 0.5
 
 
-def test_point_surface_term_leaves_the_floor_and_the_shadow_out():
-    """Points of the floor's texture scatter just above the floor cut; pulled to Psi = 0 they draw a sheet of
-    floor, so the term only takes points clear of the cut (the object's own points higher up stay)."""
-    points = np.array([[0.3, -0.79, 0.1], [0.2, -0.72, 0.0], [0.0, -0.6, 0.0], [0.0, 0.4, 0.2]], dtype=np.float32)
-    kept = points_off_the_floor(points, -0.8)
-    assert kept.tolist() == points[2:].tolist()
-    assert len(points_off_the_floor(points, None)) == 4
+def test_point_surface_term_anchors_on_clusters_of_points_off_the_floor():
+    """Points of the floor's texture scatter just above the floor cut, and strays stand alone; pulled to
+    Psi = 0 they draw a sheet of floor or specks, so the term takes only points clear of the cut that have
+    neighbours (a textured object's points)."""
+    grid = np.linspace(-0.3, 0.3, 31)  # a cloth's points 0.02 apart
+    cloth = np.stack([*np.meshgrid(grid, grid), np.zeros((31, 31))], -1).reshape(-1, 3)
+    low_cluster = cloth * [1, 0.05, 1] + [0, -0.76, 0]   # dense, but within the band over the floor at -0.8
+    strays = np.array([[0.8, 0.5, 0.1], [-0.7, -0.2, 0.5], [0.0, 0.6, -0.8]])
+    points = np.concatenate([cloth, low_cluster, strays]).astype(np.float32)
+    kept = surface_anchor_points(points, -0.8)
+    assert len(kept) == len(cloth) and np.allclose(kept, cloth.astype(np.float32))
+    assert len(surface_anchor_points(points, None)) == 2 * len(cloth)
