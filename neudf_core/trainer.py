@@ -315,14 +315,13 @@ def surface_anchor_points(points: np.ndarray, floor_y: float | None) -> np.ndarr
     floor cut (the floor's texture and the shadow: they draw a sheet of floor) and those with fewer than
     ANCHOR_NEIGHBOURS others within ANCHOR_RADIUS (a point of a textured object has neighbours; the floor's
     scatter and strays stand alone, and a lone point would grow a speck of surface)."""
-    from scipy.spatial import cKDTree
-
     if floor_y is not None:
         points = points[points[:, 1] > floor_y + FLOOR_SHADOW_BAND]
-    if len(points) == 0:
-        return points
-    others = cKDTree(points).query_ball_point(points, ANCHOR_RADIUS, return_length=True) - 1
-    return points[others >= ANCHOR_NEIGHBOURS]
+    every = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
+    # counted in blocks of rows: a capture's few thousand points, without an N x N matrix at once
+    others = torch.cat([(torch.cdist(block, every) <= ANCHOR_RADIUS).sum(1) - 1 for block in every.split(1024)]
+                       ) if len(every) else torch.zeros(0, dtype=torch.long)
+    return points[(others >= ANCHOR_NEIGHBOURS).numpy()]
 
 
 def _check_device(device: str) -> str:

@@ -356,7 +356,8 @@ def test_point_surface_term_pulls_the_field_to_zero_at_sparse_points(sheet_scene
     at_points, elsewhere = {}, {}
     for weight in (0.0, 1.0):
         run = tmp_path / f"run_{weight}"
-        train(data_dir, run, preset="quick", iters=60, overrides={**base, "loss": {"point_surface_weight": weight}})
+        loss = {"point_surface_weight": weight, "point_surface_until": 1.0}
+        train(data_dir, run, preset="quick", iters=60, overrides={**base, "loss": loss})
         model = load_model(run)
         with torch.no_grad():
             at_points[weight] = float(model.udf(torch.from_numpy(vertices[::2])).abs().mean())
