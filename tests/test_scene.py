@@ -104,3 +104,17 @@ def test_floor_under_an_object_rich_in_features_is_found_and_a_rim_is_not():
     assert level is not None and abs(level - (-0.55 + band)) < band, found
     without = heights[: n_can + 400], spread[: n_can + 400]
     assert floor_height(*without, band, 20)[0] is None
+
+
+def test_a_thin_floor_on_any_height_is_found():
+    """A floor with few points (small frames, a plain floor) is barely denser than the object's levels; it is
+    found wherever it lies, not only when it falls inside one bin of a fixed histogram. The floor here sits
+    on the edge of the bins that start at the lowest point, which splits it in half between two of them."""
+    rng = np.random.default_rng(2)
+    band = 0.02
+    object_h, object_r = rng.uniform(-0.5, 0.3, 800), rng.uniform(0.0, 0.3, 800)  # ~20 points per band
+    floor_h, floor_r = rng.uniform(-0.61, -0.59, 44), np.sqrt(rng.uniform(0.0, 0.8, 44))
+    heights = np.concatenate([object_h, floor_h, [-0.9]])  # a stray sets the lowest point: bins edge at -0.6
+    spread = np.concatenate([object_r, floor_r, [0.5]])
+    level, found = floor_height(heights, spread, band, 20)
+    assert level is not None and abs(level - (-0.6 + band)) < band, found
