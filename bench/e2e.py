@@ -194,7 +194,8 @@ def run_garment(mesh_path: Path, args: argparse.Namespace, device: str) -> dict[
         "wall_minutes_this_run": round(wall / 60, 2),
         "camera_error": cameras,
         "frames_registered": metrics.get("frames_registered"), "frames_total": metrics.get("frames_total"),
-        "train": {k: stages["train"]["metrics"].get(k) for k in ("iters", "train_psnr", "stopped_by", "images")},
+        "train": {k: stages["train"]["metrics"].get(k) for k in ("iters", "train_psnr", "stopped_by", "images",
+                                                                    "surface_points")},
     }
 
 

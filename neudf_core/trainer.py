@@ -387,6 +387,8 @@ def train(
     trainer.resume()
     result = trainer.fit(progress, budget_s=minutes * 60 if minutes is not None else None)
     result.update(preset=cfg.preset, device=device, images=data.n_images, image_size=[data.width, data.height])
+    if cfg.loss.point_surface_weight > 0:  # 0: the term was on in the options but had nothing to hold
+        result["surface_points"] = 0 if surface_points is None else len(surface_points)
     if minutes is not None:
         result["minutes"] = minutes
     return result
