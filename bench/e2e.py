@@ -166,6 +166,24 @@ def picture(path: Path, gt, pred, size: int = 320) -> None:
     Image.fromarray(np.concatenate(panels, axis=1)).save(path)
 
 
+def gallery(names: list[str], weight: str, path: Path, side: int = 240) -> None:
+    """One picture of every garment: the ground truth above, the default job's mesh below (their pictures)."""
+    from PIL import Image, ImageDraw
+
+    columns = []
+    for name in names:
+        pair = np.asarray(Image.open(PICTURES / f"e2e_{name}_{weight}.png").convert("RGB"))
+        half, pad = pair.shape[1] // 2, (pair.shape[1] // 2 - side) // 2
+        crop = lambda a: a[pad // 2: half - pad // 2, pad: pad + side]  # noqa: E731  (less of the white margin)
+        columns.append(np.concatenate([crop(pair[:, :half]), crop(pair[:, half:])], 0))
+    image = Image.fromarray(np.concatenate(columns, 1))
+    draw = ImageDraw.Draw(image)
+    for i, name in enumerate(names):
+        draw.text((i * side + 8, 4), name + (" (ground truth)" if i == 0 else ""), fill=(60, 60, 60))
+    draw.text((4, image.height // 2 + 4), f"{weight}, defaults, from the video", fill=(60, 60, 60))
+    image.save(path)
+
+
 def run_garment(mesh_path: Path, args: argparse.Namespace, device: str) -> dict[str, Any]:
     name = mesh_path.stem
     video, true_c2w = cached_video(args.work, mesh_path, args.seed)
@@ -275,6 +293,9 @@ def main() -> None:
             "rows": rows}, indent=2))
         print_table(rows)
     print(f"wrote {out}")
+    pictured = [r["mesh"] for r in rows if "error" not in r and (PICTURES / f"e2e_{r['mesh']}_{r['weight']}.png").is_file()]
+    if not (args.tag or args.preset) and pictured:  # the defaults' run: the README's picture
+        gallery(pictured, args.weight, PICTURES / f"e2e_garments_{args.weight}.png")
 
 
 if __name__ == "__main__":
