@@ -49,7 +49,7 @@ __all__ = ["STAGE", "SceneOptions", "SceneCameras", "write_scene", "is_done", "l
 
 STAGE = "scene"
 # A level of sparse points this many times denser than a typical level above it needs no wider reach than the
-# object's to count as the floor (a floor against a smooth bowl: 7224 points in its band, 2 in a typical one).
+# object's to count as the floor (a floor against a smooth bowl: 7224 points in its bin, 2 in a typical one).
 FLOOR_DENSITY = 20.0
 
 
@@ -187,32 +187,28 @@ def floor_height(heights: np.ndarray, spread: np.ndarray, band: float, min_point
     below = heights < -band
     if below.sum() < min_points:
         return None, f"{int(below.sum())} sparse points below the object"
-    low = np.sort(heights[below])
-    if low[-1] - low[0] < band:
+    edges = np.arange(heights[below].min(), 0.0, band)
+    if len(edges) < 2:
         return None, "the points below the object lie in one thin level"
-    # The densest level is a window of the band's width slid over the heights: fixed bins would split a thin
-    # floor between two of them whenever it lies on an edge, and halve its density.
-    in_window = np.searchsorted(low, low + band, side="right") - np.arange(len(low))
-    start = int(np.argmax(in_window))
-    peak = int(in_window[start])
-    level = float(low[start] + band / 2)
+    counts, edges = np.histogram(heights[below], bins=edges)
+    peak = int(np.argmax(counts))
+    level = float(edges[peak] + band / 2)
     on = np.abs(heights - level) < band
     above = heights > level + band
     # A floor is a level much denser than the object's own levels above it; an object rich in features (a
     # labelled can) may hold most of the points, so the floor is compared with levels, not with all points.
-    edges = np.arange(level + band / 2, 0.0, band)
-    higher = np.histogram(low, bins=edges)[0] if len(edges) > 1 else np.zeros(0, int)
+    higher = counts[peak + 1:]
     typical = float(np.median(higher[higher > 0])) if (higher > 0).any() else 0.0
-    found = (f"{int(on.sum())} of {len(heights)} points on the densest level below ({peak} in its band, "
-             f"{typical:.0f} in a typical band above), {int(above.sum())} above it")
-    if on.sum() < min_points or peak < 1.5 * typical or above.sum() < min_points:
+    found = (f"{int(on.sum())} of {len(heights)} points on the densest level below ({counts[peak]} in its bin, "
+             f"{typical:.0f} in a typical bin above), {int(above.sum())} above it")
+    if on.sum() < min_points or counts[peak] < 1.5 * typical or above.sum() < min_points:
         return None, found
     # A floor reaches beyond the object's footprint; a hem or a can's bottom rim does not. Where the object
     # gives few points (a smooth bowl), stray points in the column spread as far as the floor can (the column
     # bounds both), so a level many times denser than any above it is a floor if it reaches as far.
     reach_on, reach_above = np.percentile(spread[on], 80), np.percentile(spread[above], 80)
     found += f", reaching {reach_on / max(reach_above, 1e-12):.2f}x as far out as the object"
-    overwhelming = peak >= FLOOR_DENSITY * max(typical, 1.0)
+    overwhelming = counts[peak] >= FLOOR_DENSITY * max(typical, 1.0)
     if reach_on < (1.0 if overwhelming else 1.2) * reach_above:
         return None, found
     return level + band, found
