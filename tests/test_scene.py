@@ -116,4 +116,3 @@ def test_floor_under_an_object_rich_in_features_is_found_and_a_rim_is_not():
     assert level is not None and abs(level - (-0.55 + band)) < band, found
     without = heights[: n_can + 400], spread[: n_can + 400]
     assert floor_height(*without, band, 20)[0] is None
-
