@@ -12,7 +12,8 @@ from neudf_core.dataset import FLOOR_SHADOW_BAND, load_cameras
 from neudf_core.decimate import decimate
 from neudf_core.export import SUFFIXES, export_mesh
 from neudf_core.meshing import (
-    UNIT_BOUNDS, Method, NothingSeenError, color_vertices, cull_unseen, drop_small_components, extract_mesh,
+    UNIT_BOUNDS, Method, NothingSeenError, color_vertices, cull_unseen, drop_small_components, evaluate_field,
+    extract_mesh,
 )
 from neudf_core.meshing.cleanup import drop_floor_pieces, fill_small_holes, keep_above, trim_floor_skirt
 from neudf_core.numerics import flush_denormals
@@ -96,7 +97,10 @@ def mesh_run(
             raise NothingSeenError(
                 f"no face is seen by {min_seen_fraction:.0%} of the {len(cameras)} cameras in {views}")
         unseen = faces_before - len(mesh.faces)
-        mesh = fill_small_holes(mesh, info.get("fill_holes") or 0.0)  # what culling opened, as extraction does
+        # what culling opened, as extraction does: a tear where the field has cloth few cameras see is closed
+        mesh = fill_small_holes(mesh, info.get("fill_holes") or 0.0, field_perimeter=info.get("fill_covered") or 0.0,
+                                field_level=info["threshold"],
+                                field=lambda p: evaluate_field(model.udf, p, device=device))
         mesh.metadata["meshing"] = {**info, "views": str(views), "cameras": len(cameras),
                                     "min_seen_fraction": min_seen_fraction, "faces_unseen": unseen}
     color_vertices(mesh, model.color, device=device, progress=sub_progress(report, 0.9, 0.98))

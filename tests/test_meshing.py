@@ -19,7 +19,7 @@ from neudf_core import synthetic
 from neudf_core.export import export_mesh
 from neudf_core.extract import mesh_run
 from neudf_core.meshing import NoSurfaceError, color_vertices, extract_mesh
-from neudf_core.meshing.cleanup import drop_floor_pieces, trim_floor_skirt
+from neudf_core.meshing.cleanup import drop_floor_pieces, fill_small_holes, trim_floor_skirt
 from neudf_core.metrics import boundary_loops
 
 RES = 128
@@ -402,3 +402,28 @@ def test_mesh_run_end_to_end_on_a_trained_run(tiny_scene, tmp_path):
         mesh_run(udf_run, tmp_path / "udf.glb", method="mc", resolution=32)
     with pytest.raises(ValueError, match="unknown mesh format"):
         mesh_run(udf_run, tmp_path / "udf.stl", resolution=32)
+
+
+def test_a_hole_the_field_covers_is_closed_and_an_opening_it_does_not_is_kept():
+    """A patch missing where the field says surface (a meshing flaw) is closed; a real hole is kept."""
+    flaw, flaw_r = np.array([0.3, 0.0]), 0.08  # perimeter 0.50
+    grid = np.linspace(-HALF, HALF, 61)
+    x, z = np.meshgrid(grid, grid)
+    sheet = synthetic._grid_mesh(x, np.full_like(x, Y0), z)
+    centres = sheet.triangles_center
+    in_hole = np.hypot(centres[:, 0], centres[:, 2]) < HOLE  # the real opening, perimeter 1.26
+    in_flaw = np.hypot(centres[:, 0] - flaw[0], centres[:, 2] - flaw[1]) < flaw_r
+    sheet.update_faces(~in_hole & ~in_flaw)
+    sheet.remove_unreferenced_vertices()
+    mesh = trimesh.Trimesh(sheet.vertices, sheet.faces, process=True)
+    assert boundary_loops(mesh) == 3
+
+    def field(points: np.ndarray) -> np.ndarray:
+        return sheet_with_hole(torch.as_tensor(points, dtype=torch.float32)).numpy()
+
+    kept = fill_small_holes(mesh, 0.1, field=field, field_perimeter=1.5, field_level=0.02)
+    assert boundary_loops(kept) == 2  # the sheet's edge and the opening
+    assert len(kept.faces) < len(mesh.faces) + 60  # one fan over the flaw, not one over the sheet
+    # the sheet's own edge: the field covers its fan, and so does the sheet (so no second sheet)
+    assert boundary_loops(fill_small_holes(mesh, 0.1, field=field, field_perimeter=10.0, field_level=0.02)) == 2
+    assert boundary_loops(fill_small_holes(mesh, 0.1)) == 3  # by perimeter alone, neither

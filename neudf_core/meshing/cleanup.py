@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 
 import numpy as np
 import trimesh
@@ -136,16 +137,23 @@ def orient_faces(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return trimesh.Trimesh(mesh.vertices, faces, process=False)
 
 
-def fill_small_holes(mesh: trimesh.Trimesh, max_perimeter: float) -> trimesh.Trimesh:
-    """Close boundary loops no longer than ``max_perimeter`` with a fan around their centroid.
+def fill_small_holes(mesh: trimesh.Trimesh, max_perimeter: float, *, field: Callable[[np.ndarray], np.ndarray] |
+                     None = None, field_perimeter: float = 0.0, field_level: float = 0.0) -> trimesh.Trimesh:
+    """Close boundary loops no longer than ``max_perimeter`` with a fan around their centroid; with a
+    ``field`` (the UDF, points to values), also the loops up to ``field_perimeter`` that the field covers
+    and the mesh does not: the field's median over points across the fan at most ``field_level``, and no
+    vertex of the mesh nearer the loop's centroid than half the distance to the loop's nearest vertex.
 
     Where a learned UDF is off by more than a voxel, neighbouring cells can disagree on a pseudo-sign
     and leave a pinhole of a few voxels (more of them at finer resolutions); a real opening of a
-    garment is far longer. Loops are traced per fan of faces (a pinhole touching
-    another at a vertex is two loops). Expects consistent winding: each boundary edge a -> b of a face
-    gets the triangle (b, a, centre).
+    garment is far longer. Larger holes where the field still says "surface" are the same flaw; an
+    opening has no surface across it, so the field there is about its radius. (The outer edge of a flat
+    sheet has the field across its fan too, and the sheet itself: the mesh test keeps it.) Loops are
+    traced per fan of faces (a pinhole touching another at a vertex is two loops). Expects consistent
+    winding: each boundary edge a -> b of a face gets the triangle (b, a, centre).
     """
-    if max_perimeter <= 0 or len(mesh.faces) == 0:
+    reach = max(max_perimeter, field_perimeter if field is not None else 0.0)
+    if reach <= 0 or len(mesh.faces) == 0:
         return mesh
     faces = np.asarray(mesh.faces)
     wedges = split_pinched_vertices(faces)  # per-fan vertex ids
@@ -166,19 +174,47 @@ def fill_small_holes(mesh: trimesh.Trimesh, max_perimeter: float) -> trimesh.Tri
     ends = vertex_of[boundary]  # back to the mesh's vertices
     lengths = np.linalg.norm(mesh.vertices[ends[:, 0]] - mesh.vertices[ends[:, 1]], axis=1)
     perimeter = np.bincount(edge_label, weights=lengths)
-    small = (perimeter <= max_perimeter) & (n_edges == n_ids)  # a simple loop
+    simple = n_edges == n_ids
+    sums = np.zeros((len(n_edges), 3))
+    np.add.at(sums, labels, mesh.vertices[vertex_of[ids]])
+    centres_all = sums / np.maximum(n_ids, 1)[:, None]
+    small = (perimeter <= max_perimeter) & simple
+    if field is not None:
+        candidates = np.nonzero(simple & ~small & (perimeter <= field_perimeter))[0]
+        small[candidates[_covered(field, np.asarray(mesh.vertices), vertex_of[ids], labels, centres_all,
+                                  candidates, field_level)]] = True
     if not small.any():
         return mesh
     holes = np.nonzero(small)[0]
     centre_of = np.full(len(n_edges), -1)
     centre_of[holes] = len(mesh.vertices) + np.arange(len(holes))
-    sums = np.zeros((len(n_edges), 3))
-    np.add.at(sums, labels, mesh.vertices[vertex_of[ids]])
-    centres = sums[holes] / n_ids[holes, None]
+    centres = centres_all[holes]
     fill = small[edge_label]
     new_faces = np.stack([ends[fill, 1], ends[fill, 0], centre_of[edge_label[fill]]], -1)
-    log.info("filled %d pinholes with perimeters up to %.3g", len(holes), max_perimeter)
+    log.info("filled %d holes (%d up to perimeter %.3g, the rest covered by the field)", len(holes),
+             int(((perimeter <= max_perimeter) & simple).sum()), max_perimeter)
     return trimesh.Trimesh(np.vstack([mesh.vertices, centres]), np.vstack([faces, new_faces]), process=False)
+
+
+# Where across a hole's fan the field is read: the centre and these fractions of the way to each rim vertex.
+FAN_FRACTIONS = (0.25, 0.5, 0.75)
+
+
+def _covered(field: Callable[[np.ndarray], np.ndarray], vertices: np.ndarray, rim_ids: np.ndarray,
+             labels: np.ndarray, centres: np.ndarray, loops: np.ndarray, level: float) -> np.ndarray:
+    """Which of ``loops`` (rim vertices ``rim_ids`` by label) the field covers and the mesh does not."""
+    if len(loops) == 0:
+        return np.zeros(0, bool)
+    points, owner, open_ = [], [], []
+    for i, loop in enumerate(loops):
+        centre, ring = centres[loop], vertices[rim_ids[labels == loop]]
+        to_rim = float(np.min(np.sum((ring - centre) ** 2, axis=1)))
+        open_.append(float(np.min(np.sum((vertices - centre) ** 2, axis=1))) >= 0.25 * to_rim)
+        across = [centre[None]] + [centre + f * (ring - centre) for f in FAN_FRACTIONS]
+        points.append(np.concatenate(across))
+        owner.append(np.full(sum(len(a) for a in across), i))
+    values, owner = field(np.concatenate(points)), np.concatenate(owner)
+    return np.array([open_[i] and np.median(values[owner == i]) <= level for i in range(len(loops))])
 
 
 def _piece_labels(faces: np.ndarray) -> np.ndarray:
