@@ -14,7 +14,8 @@ exports and evaluates it like any other run (meshing culls with open3d, which th
     .venv/bin/python bench/remote.py unpack OUT/*.tar.gz --tag cuda   # here: the job folders
     .venv/bin/python bench/e2e.py --preset gpu --tag cuda --out bench/results/e2e_neudf_cuda.json
 
-There it needs torch, numpy, Pillow, PyAV, pydantic and trimesh, and nothing else of the project's.
+There it needs torch, numpy, scipy, Pillow, OpenCV and scikit-image (a CUDA image tends to have them) and
+PyAV, pydantic and trimesh, nothing else of the project's (checked in a virtual environment with only these).
 """
 
 from __future__ import annotations
