@@ -97,7 +97,7 @@ def mesh_run(
             raise NothingSeenError(
                 f"no face is seen by {min_seen_fraction:.0%} of the {len(cameras)} cameras in {views}")
         unseen = faces_before - len(mesh.faces)
-        # what culling opened, as extraction does: a tear where the field has cloth few cameras see is closed
+        # what culling opened, as extraction does (and tears the field covers, where fill_covered allows)
         mesh = fill_small_holes(mesh, info.get("fill_holes") or 0.0, field_perimeter=info.get("fill_covered") or 0.0,
                                 field_level=info["threshold"],
                                 field=lambda p: evaluate_field(model.udf, p, device=device))

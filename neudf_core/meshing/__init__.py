@@ -53,11 +53,11 @@ Method = Literal["meshudf", "spsr", "mc"]
 # 0.08 across. The holes a learned field left in a garment's cloth measured up to 0.23 (pants on video); the
 # smallest openings of the five garments measure 0.78 (GT's sphere), a thin learned pants' legs 0.59.
 FILL_HOLES_SHARE = 0.125
-# Holes up to this share of the box's side are closed where the field covers them (its median across the hole
-# at most the meshing threshold) and the mesh does not: tears in cloth few cameras see, which culling bit out
-# (fan medians 0.0003-0.002 on polo and pants from video, 0.003-0.05 off the true cloth). An opening has no
-# surface across it: the field there is a share of its radius (0.039, polo's hem, 5 voxels).
-FILL_COVERED_SHARE = 0.5
+# Holes up to this share of the box's side can be closed where the field covers them (its median across the
+# hole at most the meshing threshold) and the mesh does not: tears in cloth few cameras see, which culling
+# cut (polo, pants on video). Off by default: where the field lids an opening that culling opened (two on the
+# poncho on video) it closes the opening again (docs/experiments.md).
+FILL_COVERED_SHARE = 0.0
 ColorFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 
@@ -111,7 +111,7 @@ def extract_mesh(
     a perimeter up to ``fill_holes`` are closed (holes where the field is off; default: the larger of
     :data:`FILL_HOLES_SHARE` of the longest side of ``bounds`` and 8 voxels; 0 keeps every hole), and
     holes up to ``fill_covered`` that the field covers and the mesh does not (default
-    :data:`FILL_COVERED_SHARE` of the longest side; 0: none; see :func:`fill_small_holes`). The mesh
+    :data:`FILL_COVERED_SHARE` of the longest side, 0: none; see :func:`fill_small_holes`). The mesh
     is in the coordinates of the queried points. Raises :class:`NoSurfaceError` (a ValueError) when the
     field has no surface in bounds.
     """
