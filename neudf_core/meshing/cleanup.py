@@ -178,7 +178,8 @@ def fill_small_holes(mesh: trimesh.Trimesh, max_perimeter: float, *, field: Call
     sums = np.zeros((len(n_edges), 3))
     np.add.at(sums, labels, mesh.vertices[vertex_of[ids]])
     centres_all = sums / np.maximum(n_ids, 1)[:, None]
-    small = (perimeter <= max_perimeter) & simple
+    by_size = (perimeter <= max_perimeter) & simple
+    small = by_size.copy()
     if field is not None:
         candidates = np.nonzero(simple & ~small & (perimeter <= field_perimeter))[0]
         small[candidates[_covered(field, np.asarray(mesh.vertices), vertex_of[ids], labels, centres_all,
@@ -192,7 +193,7 @@ def fill_small_holes(mesh: trimesh.Trimesh, max_perimeter: float, *, field: Call
     fill = small[edge_label]
     new_faces = np.stack([ends[fill, 1], ends[fill, 0], centre_of[edge_label[fill]]], -1)
     log.info("filled %d holes (%d up to perimeter %.3g, the rest covered by the field)", len(holes),
-             int(((perimeter <= max_perimeter) & simple).sum()), max_perimeter)
+             int(by_size.sum()), max_perimeter)
     return trimesh.Trimesh(np.vstack([mesh.vertices, centres]), np.vstack([faces, new_faces]), process=False)
 
 
