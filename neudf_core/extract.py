@@ -12,8 +12,8 @@ from neudf_core.dataset import FLOOR_SHADOW_BAND, load_cameras
 from neudf_core.decimate import decimate
 from neudf_core.export import SUFFIXES, export_mesh
 from neudf_core.meshing import (
-    UNIT_BOUNDS, Method, NothingSeenError, color_vertices, cull_unseen, drop_small_components, evaluate_field,
-    extract_mesh,
+    UNIT_BOUNDS, Method, NoSurfaceError, NothingSeenError, color_vertices, cull_unseen, drop_small_components,
+    evaluate_field, extract_mesh,
 )
 from neudf_core.meshing.cleanup import drop_floor_pieces, fill_small_holes, keep_above, trim_floor_skirt
 from neudf_core.numerics import flush_denormals
@@ -87,6 +87,9 @@ def mesh_run(
         mesh = keep_above(mesh, floor_y)
         mesh = drop_floor_pieces(mesh, floor_y, FLOOR_BAND, touch=2.0 * mesh.metadata["meshing"]["voxel"])
         mesh = trim_floor_skirt(mesh, floor_y, SKIRT_BAND, SKIRT_ABOVE, SKIRT_MARGIN)
+        if len(mesh.faces) == 0:
+            raise NoSurfaceError(f"the field's surface lies wholly below the floor found at height {floor_y:.3g} "
+                                 "of the unit sphere: nothing of the object is above it")
     if cameras is not None:
         report(0.85, "dropping what no camera sees")
         info = mesh.metadata["meshing"]

@@ -8,7 +8,9 @@ The analytic shapes (world units, all in the unit box):
 
 from __future__ import annotations
 
+import json
 import logging
+import shutil
 
 import numpy as np
 import pytest
@@ -390,6 +392,14 @@ def test_mesh_run_end_to_end_on_a_trained_run(tiny_scene, tmp_path):
     assert 0 < len(seen.faces) <= len(mesh.faces) and info["faces_unseen"] == len(mesh.faces) - len(seen.faces)
     with pytest.raises(ValueError, match="does not exist"):
         mesh_run(sdf_run, tmp_path / "y.ply", method="mc", resolution=32, views=tmp_path / "nowhere")
+    # a floor found above the whole surface: a clear error, not an empty file
+    high = shutil.copytree(sdf_run, tmp_path / "high_floor")
+    cfg = json.loads((high / "config.json").read_text())
+    cfg["data"]["floor_y"] = 0.99
+    (high / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(NoSurfaceError, match="below the floor"):
+        mesh_run(high, tmp_path / "z.glb", method="mc", resolution=32)
+    assert not (tmp_path / "z.glb").exists()
 
     # NeUDF starts as the distance to a point: after two iterations there is no surface yet, and the
     # error says so instead of writing an empty file.
