@@ -178,7 +178,8 @@ class Cameras:
         return len(self.c2w)
 
 
-def _image_paths(root: Path) -> list[Path]:
+def image_paths(root: Path) -> list[Path]:
+    """The frames of a NeuS-layout folder (image/*.png or *.jpg), in camera order."""
     if not root.is_dir():
         raise DatasetError(f"dataset folder {root} does not exist")
     paths = sorted((root / "image").glob("*.png")) + sorted((root / "image").glob("*.jpg"))
@@ -205,7 +206,7 @@ def _projections(root: Path, n: int) -> list[np.ndarray]:
 def load_cameras(root: str | Path) -> Cameras:
     """The cameras of a NeuS-layout folder in unit-sphere coordinates; reads one image only, for its size."""
     root = Path(root)
-    paths = _image_paths(root)
+    paths = image_paths(root)
     with Image.open(paths[0]) as first:
         width, height = first.size
     Ks, c2ws = zip(*(decompose_projection(P) for P in _projections(root, len(paths))))
@@ -214,12 +215,14 @@ def load_cameras(root: str | Path) -> Cameras:
 
 def sphere_diameter_px(projections: list[np.ndarray]) -> float:
     """Median over the views of the unit sphere's diameter in pixels (the object's extent, for sizing images)."""
-    sizes = []
-    for P in projections:
-        K, c2w = decompose_projection(P)
-        distance = max(float(np.linalg.norm(c2w[:3, 3])), 1.0 + 1e-6)
-        sizes.append(2.0 * K[0, 0] / np.sqrt(distance**2 - 1.0))
-    return float(np.median(sizes))
+    Ks, c2ws = zip(*(decompose_projection(P) for P in projections))
+    return cameras_sphere_px(np.stack(Ks), np.stack(c2ws))
+
+
+def cameras_sphere_px(intrinsics: np.ndarray, c2w: np.ndarray) -> float:
+    """:func:`sphere_diameter_px` of cameras given as (N, 3, 3) intrinsics and (N, 4, 4) camera-to-world."""
+    distance = np.maximum(np.linalg.norm(c2w[:, :3, 3], axis=1), 1.0 + 1e-6)
+    return float(np.median(2.0 * intrinsics[:, 0, 0] / np.sqrt(distance**2 - 1.0)))
 
 
 def training_scale(width: int, height: int, projections: list[np.ndarray], max_size: int, sphere_px: int) -> float:
@@ -261,20 +264,20 @@ def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False, s
     """Read a NeuS-layout folder; ``max_size`` > 0 and ``sphere_px`` > 0 downsize images (and intrinsics) for
     training (see :func:`training_scale`)."""
     root = Path(root)
-    image_paths = _image_paths(root)
-    projections = _projections(root, len(image_paths))
+    paths = image_paths(root)
+    projections = _projections(root, len(paths))
     mask_paths = None
     if use_masks:
         mask_paths = sorted((root / "mask").glob("*.png"))
-        if len(mask_paths) != len(image_paths):
-            raise DatasetError(f"{len(mask_paths)} masks for {len(image_paths)} images in {root / 'mask'}")
+        if len(mask_paths) != len(paths):
+            raise DatasetError(f"{len(mask_paths)} masks for {len(paths)} images in {root / 'mask'}")
 
-    first = Image.open(image_paths[0])
+    first = Image.open(paths[0])
     width, height = first.size
     scale = training_scale(width, height, projections, max_size, sphere_px)
     size = (max(1, round(width * scale)), max(1, round(height * scale)))
     images, masks, Ks, c2ws = [], [], [], []
-    for i, path in enumerate(image_paths):
+    for i, path in enumerate(paths):
         with Image.open(path) as probe:
             if probe.size != (width, height):
                 raise DatasetError(f"{path.name} is {probe.size[0]}x{probe.size[1]}, others are {width}x{height}")
@@ -292,5 +295,5 @@ def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False, s
         masks=as_t(masks) if mask_paths is not None else None,
         intrinsics=as_t(Ks),
         c2w=as_t(c2ws),
-        names=[p.name for p in image_paths],
+        names=[p.name for p in paths],
     )

@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 import trimesh
 
-from neudf_core.dataset import FLOOR_SHADOW_BAND, load_cameras
+from neudf_core.dataset import FLOOR_SHADOW_BAND, image_paths, load_cameras
 from neudf_core.decimate import decimate
 from neudf_core.export import SUFFIXES, export_mesh
 from neudf_core.meshing import (
@@ -16,6 +16,7 @@ from neudf_core.meshing import (
     evaluate_field, extract_mesh,
 )
 from neudf_core.meshing.cleanup import drop_floor_pieces, fill_small_holes, keep_above, trim_floor_skirt
+from neudf_core.meshing.lids import SPREAD_LID, open_lids
 from neudf_core.numerics import flush_denormals
 from neudf_core.progress import ProgressFn, null_progress, sub_progress
 from neudf_core.texture import bake_texture
@@ -40,6 +41,7 @@ def mesh_run(
     min_component_fraction: float = 0.01,
     views: str | Path | None = None,
     min_seen_fraction: float = 0.15,
+    lid_spread: float = SPREAD_LID,
     faces: int = 0,
     texture_size: int = 0,
     device: str = "cpu",
@@ -53,7 +55,9 @@ def mesh_run(
     :func:`extract_mesh`.
     ``views``: the run's dataset folder; faces that fewer than ``min_seen_fraction`` of its cameras see
     are dropped (:func:`cull_unseen`; 0.15 is 8 of 48 views, where culling a tube's and a pants' inner
-    sheets stopped gaining); :class:`NothingSeenError` when that leaves no face.
+    sheets stopped gaining); :class:`NothingSeenError` when that leaves no face. Then patches the frames
+    disagree on the colour of, above ``lid_spread``, are cut as lids over openings (:func:`open_lids`;
+    0 keeps them).
     ``faces`` > 0: decimated to about that many faces (:func:`decimate`); ``texture_size`` > 0 (needs
     ``views``): a texture of that side baked from the dataset's frames (:func:`bake_texture`), and the
     returned mesh is the textured, two-sided one.
@@ -95,6 +99,9 @@ def mesh_run(
         info = mesh.metadata["meshing"]
         faces_before = len(mesh.faces)
         mesh = cull_unseen(mesh, cameras, min_seen_fraction, tol=2.0 * info["voxel"])
+        mesh = open_lids(mesh, cameras, image_paths(Path(views)), tol=2.0 * info["voxel"], voxel=info["voxel"],
+                         lid=lid_spread)
+        lids = mesh.metadata.get("meshing", {}).get("faces_lids", 0)
         mesh = drop_small_components(mesh, min_component_faces, min_component_fraction)
         if len(mesh.faces) == 0:
             raise NothingSeenError(
@@ -105,7 +112,8 @@ def mesh_run(
                                 field_level=info["threshold"],
                                 field=lambda p: evaluate_field(model.udf, p, device=device))
         mesh.metadata["meshing"] = {**info, "views": str(views), "cameras": len(cameras),
-                                    "min_seen_fraction": min_seen_fraction, "faces_unseen": unseen}
+                                    "min_seen_fraction": min_seen_fraction, "faces_unseen": unseen - lids,
+                                    "lid_spread": lid_spread, "faces_lids": lids}
     color_vertices(mesh, model.color, device=device, progress=sub_progress(report, 0.9, 0.98))
     mesh = decimate(mesh, faces)
     if texture_size > 0:

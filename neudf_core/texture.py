@@ -78,11 +78,11 @@ class Views:
 
 def load_views(data_dir: str | Path) -> Views:
     """The frames and cameras of a NeuS-layout folder (the dataset module's reading of them)."""
-    from neudf_core.dataset import _image_paths, load_cameras
+    from neudf_core.dataset import image_paths, load_cameras
 
     root = Path(data_dir)
     cameras = load_cameras(root)
-    paths = _image_paths(root)
+    paths = image_paths(root)
     given: dict[str, float] = {}
     frames_file = root / "frames.json"
     if frames_file.is_file():

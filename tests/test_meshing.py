@@ -386,10 +386,15 @@ def test_mesh_run_end_to_end_on_a_trained_run(tiny_scene, tmp_path):
     with pytest.raises(ValueError, match="signed"):
         mesh_run(sdf_run, tmp_path / "x.glb", method="meshudf", resolution=32)
     # with the dataset's cameras: the sphere's faces all face some of the orbit, so culling keeps most
-    seen = mesh_run(sdf_run, tmp_path / "seen.ply", method="mc", resolution=32, views=tiny_scene)
+    seen = mesh_run(sdf_run, tmp_path / "seen.ply", method="mc", resolution=32, views=tiny_scene, lid_spread=0)
     info = seen.metadata["meshing"]
     assert info["cameras"] == len(list((tiny_scene / "image").glob("*.png")))
     assert 0 < len(seen.faces) <= len(mesh.faces) and info["faces_unseen"] == len(mesh.faces) - len(seen.faces)
+    assert info["faces_lids"] == 0
+    # ...but the frames show a sheet, not this sphere: they disagree on its colour, and most of it is cut
+    lidded = mesh_run(sdf_run, tmp_path / "lids.ply", method="mc", resolution=32, views=tiny_scene)
+    cut = lidded.metadata["meshing"]["faces_lids"]
+    assert cut > len(seen.faces) / 2 and len(lidded.faces) < len(seen.faces)
     with pytest.raises(ValueError, match="does not exist"):
         mesh_run(sdf_run, tmp_path / "y.ply", method="mc", resolution=32, views=tmp_path / "nowhere")
     # a floor found above the whole surface: a clear error, not an empty file
@@ -437,3 +442,62 @@ def test_a_hole_the_field_covers_is_closed_and_an_opening_it_does_not_is_kept():
     # the sheet's own edge: the field covers its fan, and so does the sheet (so no second sheet)
     assert boundary_loops(fill_small_holes(mesh, 0.1, field=field, field_perimeter=10.0, field_level=0.02)) == 2
     assert boundary_loops(fill_small_holes(mesh, 0.1)) == 3  # by perimeter alone, neither
+
+
+def test_a_lid_the_frames_disagree_on_is_cut_and_the_surface_they_agree_on_kept(tmp_path):
+    """A bowl filmed open and meshed with a lid over its rim, as a field lids an opening: through the lid
+    each camera sees another part of the textured inside, so the frames scatter about the lid's colour
+    and it is cut; on the bowl's outside they agree, and it stays."""
+    from neudf_core.dataset import image_paths, load_cameras
+    from neudf_core.meshing.lids import SPREAD_LID, colour_spread, lid_faces, open_lids
+
+    data = synthetic.write_neus_dataset(tmp_path / "bowl", synthetic.procedural_mesh("bowl", subdivisions=48),
+                                        n_views=32, size=128)
+    bowl = trimesh.load(data / "mesh_gt.ply", process=False)
+    top = bowl.vertices[:, 1].max()
+    radius = np.hypot(bowl.vertices[:, 0], bowl.vertices[:, 2]).max()
+    x, z = np.meshgrid(np.linspace(-radius, radius, 41), np.linspace(-radius, radius, 41))
+    lid = synthetic._grid_mesh(x, np.full_like(x, top - 0.01), z)
+    lid.update_faces(np.hypot(lid.triangles_center[:, 0], lid.triangles_center[:, 2]) < 0.97 * radius)
+    lid.remove_unreferenced_vertices()
+    meshed = trimesh.util.concatenate([bowl, lid])
+    cameras, frames, voxel = load_cameras(data), image_paths(data), 2.0 / 128
+
+    spread = colour_spread(meshed, cameras, frames, tol=2 * voxel)
+    on_lid = np.arange(len(meshed.vertices)) >= len(bowl.vertices)
+    outside = ~on_lid & (meshed.vertex_normals[:, 1] < -0.5)  # the bowl's underside, seen from below
+    assert np.nanmedian(spread[on_lid]) > SPREAD_LID > 0.1 > np.nanmedian(spread[outside])
+    cut = lid_faces(meshed, spread, rings=2)
+    n_bowl = len(bowl.faces)
+    assert cut[n_bowl:].mean() > 0.8 and cut[:n_bowl].mean() < 0.02, (cut[n_bowl:].mean(), cut[:n_bowl].mean())
+
+    opened = open_lids(meshed.copy(), cameras, frames, tol=2 * voxel, voxel=voxel)
+    assert opened.metadata["meshing"]["faces_lids"] == int(cut.sum())
+    assert len(open_lids(meshed.copy(), cameras, frames, tol=2 * voxel, voxel=voxel, lid=0).faces) == len(meshed.faces)
+
+
+def test_cloth_printed_on_one_side_is_not_a_lid(tmp_path):
+    """A sheet red on top and blue below, filmed from all around: each side's cameras agree among
+    themselves, so the colours the two sides disagree on do not make it a lid."""
+    from neudf_core.dataset import image_paths, load_cameras
+    from neudf_core.meshing.lids import SPREAD_LID, colour_spread, lid_faces
+
+    grid = np.linspace(-0.8, 0.8, 33)
+    x, z = np.meshgrid(grid, grid)
+    checker = ((np.floor(x * 5) + np.floor(z * 5)) % 2).reshape(-1, 1)  # texture on each side
+    sides = []
+    for y, base in ((0.004, [220, 60, 50]), (-0.004, [40, 70, 210])):
+        sheet = synthetic._grid_mesh(x, np.full_like(x, y), z)
+        colours = (np.array(base) * (0.6 + 0.4 * checker)).astype(np.uint8)
+        sheet.visual = trimesh.visual.ColorVisuals(sheet, vertex_colors=np.c_[colours, np.full(len(colours), 255, np.uint8)])
+        sides.append(sheet)
+    cloth = trimesh.util.concatenate(sides)
+    to_unit = np.linalg.inv(synthetic.unit_sphere_transform(cloth))
+    data = synthetic.write_neus_dataset(tmp_path / "cloth", cloth, n_views=32, size=128)
+    meshed = synthetic._grid_mesh(x, np.zeros_like(x), z)  # the field's single sheet between the two sides
+    meshed.apply_transform(to_unit)
+    cameras, voxel = load_cameras(data), 2.0 / 128
+
+    spread = colour_spread(meshed, cameras, image_paths(data), tol=2 * voxel)
+    assert np.nanmedian(spread) < 0.1 < SPREAD_LID
+    assert not lid_faces(meshed, spread, rings=2).any()

@@ -90,6 +90,7 @@ def reconstruct(
     mesh_threshold: Annotated[float | None, typer.Option(help="UDF level under which a face counts as surface.")] = None,
     mesh_min_faces: Annotated[int | None, typer.Option(help="Connected pieces with fewer faces are dropped (default 32).")] = None,
     mesh_min_seen: Annotated[float | None, typer.Option(help="Share of the cameras that must see a face (default 0.15; 0 keeps every face).")] = None,
+    mesh_lid_spread: Annotated[float | None, typer.Option(help="Colour scatter across the frames above which a seen patch is cut as a lid over an opening (default 0.2; 0 keeps lids).")] = None,
     faces: Annotated[int, typer.Option(help="Faces of the mesh written (quadric decimation, open boundaries kept); "
                                             "0 keeps every face.")] = DEFAULT_FACES,
     texture_size: Annotated[int, typer.Option(help="Side of the texture baked from the frames, px; 0: vertex "
@@ -113,7 +114,8 @@ def reconstruct(
     try:
         options = JobOptions(preset=preset, minutes=minutes, iters=iters, weight=weight, frames=frames, mesh_resolution=mesh_resolution,
                              mesh_method=mesh_method, mesh_threshold=mesh_threshold,
-                             mesh_min_faces=mesh_min_faces, mesh_min_seen=mesh_min_seen, faces=faces,
+                             mesh_min_faces=mesh_min_faces, mesh_min_seen=mesh_min_seen,
+                             mesh_lid_spread=mesh_lid_spread, faces=faces,
                              texture_size=texture_size)
     except ValidationError as exc:
         first = exc.errors()[0]

@@ -78,6 +78,9 @@ class JobOptions(BaseModel):
     mesh_min_seen: float | None = Field(None, ge=0, le=1, description="Share of the video's cameras that must see a "
                                         "face for it to stay (default 0.15): sheets fewer views see are the "
                                         "field's guesses. 0 keeps every face.")
+    mesh_lid_spread: float | None = Field(None, ge=0, le=3, description="How far the frames may scatter about a "
+                                          "seen patch's colour (median L1 over RGB in 0..1) before it is cut as "
+                                          "a lid over an opening (default 0.2). 0 keeps every lid.")
     faces: int = Field(DEFAULT_FACES, ge=0, le=5_000_000, description="Faces of the downloaded mesh (quadric "
                        "decimation, open boundaries kept); 0 keeps every face.")
     texture_size: int = Field(DEFAULT_TEXTURE_SIZE, ge=0, le=MAX_TEXTURE_SIZE, description="Side of the texture baked from the "
@@ -211,6 +214,8 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
         kwargs["threshold"] = ctx.options.mesh_threshold
     if ctx.options.mesh_min_seen is not None:
         kwargs["min_seen_fraction"] = ctx.options.mesh_min_seen
+    if ctx.options.mesh_lid_spread is not None:
+        kwargs["lid_spread"] = ctx.options.mesh_lid_spread
     ctx.mesh_file.parent.mkdir(parents=True, exist_ok=True)
     try:
         if ctx.options.mesh_min_faces is not None:
@@ -227,7 +232,7 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
     except ValueError as exc:  # a method that does not fit the field, ...
         raise StageError("mesh", str(exc)) from exc
     info = mesh.metadata.get("meshing", {})
-    keys = ("method", "resolution", "threshold", "faces_unseen", "faces_on_floor", "faces_floor_skirt")
+    keys = ("method", "resolution", "threshold", "faces_unseen", "faces_lids", "faces_on_floor", "faces_floor_skirt")
     return {f"mesh_{k}": info[k] for k in keys if k in info}
 
 
@@ -272,8 +277,9 @@ STAGES: tuple[Stage, ...] = (
           owns=lambda c: [c.run_dir], keys=("preset", "weight", "iters", "minutes"), resumable=("iters", "minutes"),
           expect_s=lambda c: 60.0 * c.train_minutes if c.train_minutes else 0.25 * (c.options.iters or 4000)),
     Stage("mesh", 0.10, _mesh, lambda c: [c.mesh_file], owns=lambda c: [c.mesh_file.parent],
-          keys=("mesh_method", "mesh_resolution", "mesh_threshold", "mesh_min_faces", "mesh_min_seen"),
-          expect_s=lambda c: 20.0),
+          keys=("mesh_method", "mesh_resolution", "mesh_threshold", "mesh_min_faces", "mesh_min_seen",
+                "mesh_lid_spread"),
+          expect_s=lambda c: 45.0),
     # The bake projects every frame onto the texture: about a third of a second per frame on a 2-core CPU.
     Stage("export", 0.05, _export, lambda c: [c.export_dir / "mesh.glb", c.export_dir / "metrics.json"],
           keys=("faces", "texture_size"), expect_s=lambda c: 15.0 + (0.35 * c.frames if c.options.texture_size else 0),

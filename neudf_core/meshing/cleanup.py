@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import trimesh
@@ -334,15 +334,15 @@ class NothingSeenError(ValueError):
     """Culling by the cameras left no face: too few of them see what the field made."""
 
 
-def views_seeing(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, tol: float) -> np.ndarray:
-    """How many cameras see each vertex: it lies in front of the camera and inside its image, and the
-    ray from the camera's centre meets no face more than ``tol`` before it."""
+def sightings(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, tol: float
+              ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Per camera: which vertices it sees (in front of it, inside its image, and the ray from its centre
+    meets no face more than ``tol`` before them) and where they land in its image ((N, 2) pixels)."""
     import open3d as o3d  # heavy import, only visibility needs it
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
                         o3d.core.Tensor(np.asarray(faces, np.uint32)))
-    counts = np.zeros(len(vertices), np.int64)
     for K, c2w in zip(cameras.intrinsics, cameras.c2w):
         centre = c2w[:3, 3]
         offset = vertices - centre
@@ -355,7 +355,14 @@ def views_seeing(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, tol:
         dist = np.linalg.norm(offset, axis=1)
         rays = np.concatenate([np.broadcast_to(centre, offset.shape), offset / np.maximum(dist, 1e-12)[:, None]], 1)
         hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
-        counts += in_view & (hit >= dist - tol)
+        yield in_view & (hit >= dist - tol), np.stack([u, v], axis=1)
+
+
+def views_seeing(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, tol: float) -> np.ndarray:
+    """How many cameras see each vertex (see :func:`sightings`)."""
+    counts = np.zeros(len(vertices), np.int64)
+    for seen, _ in sightings(vertices, faces, cameras, tol):
+        counts += seen
     return counts
 
 
