@@ -8,7 +8,8 @@ import pytest
 
 from neudf_core.config import available_presets, default_preset
 from neudf_core.trainer import BUDGET_MAX_ITERS
-from worker.pipeline import DEFAULT_TRAIN_MINUTES, JobContext, JobOptions, run_pipeline
+from worker.pipeline import (AFTER_TRAIN_MINUTES, DEFAULT_JOB_MINUTES, DEFAULT_TRAIN_MINUTES, MIN_TRAIN_MINUTES,
+                             JobContext, JobOptions, run_pipeline)
 
 # The plumbing options of tests/conftest.py's QUICK_JOB, without its iteration count: the budget alone stops.
 TINY = {"frames": 30, "mesh_resolution": 64, "mesh_threshold": 0.25, "mesh_min_faces": 1, "mesh_min_seen": 0.0,
@@ -29,6 +30,14 @@ def test_defaults_follow_the_device(tmp_path):
     assert context("cpu").train_minutes == DEFAULT_TRAIN_MINUTES
     assert context("cpu", iters=50).train_minutes is None
     assert context("cpu", iters=50, minutes=2).train_minutes == 2
+    # ...what a slow capture left of the job's minutes, within bounds; a budget of the user's stays as it is
+    (tmp_path / "stages").mkdir()
+    for name, minutes in (("frames", 0.5), ("poses", 11.0), ("scene", 0.1)):
+        (tmp_path / "stages" / f"{name}.json").write_text(json.dumps({"seconds": 60 * minutes}))
+    assert context("cpu").train_minutes == pytest.approx(DEFAULT_JOB_MINUTES - AFTER_TRAIN_MINUTES - 11.6)
+    assert context("cpu", minutes=9).train_minutes == 9
+    (tmp_path / "stages" / "poses.json").write_text(json.dumps({"seconds": 60 * 16.0}))
+    assert context("cpu").train_minutes == MIN_TRAIN_MINUTES
 
 
 def test_job_minutes_bound_training_and_the_metrics_say_so(tiny_video, tmp_path):

@@ -19,7 +19,7 @@ import typer
 from neudf_core.cli import fail, progress_bar
 from neudf_core.decimate import DEFAULT_FACES
 from neudf_core.texture import DEFAULT_TEXTURE_SIZE
-from worker.pipeline import DEFAULT_TRAIN_MINUTES
+from worker.pipeline import DEFAULT_JOB_MINUTES, DEFAULT_TRAIN_MINUTES, MIN_TRAIN_MINUTES
 
 if TYPE_CHECKING:  # the commands import what they need when they run: `neudf --help` stays fast
     from worker.settings import QueueSettings
@@ -77,7 +77,9 @@ def reconstruct(
                                                     "(iOS AR) or .ply (vertex colours).")],
     preset: Annotated[str | None, typer.Option(help="Training preset: quick, fast, gpu or paper (default: quick on "
                                                     "a CPU, gpu on CUDA).")] = None,
-    minutes: Annotated[float | None, typer.Option(help=f"Training budget in minutes (default {DEFAULT_TRAIN_MINUTES:g} unless --iters is given); "
+    minutes: Annotated[float | None, typer.Option(help=f"Training budget in minutes (default, unless --iters is given: "
+                                                      f"what the capture left of {DEFAULT_JOB_MINUTES:g} minutes end to end, "
+                                                      f"{MIN_TRAIN_MINUTES:g}-{DEFAULT_TRAIN_MINUTES:g}); "
                                                       "training stops at it or at --iters, whichever comes first.")] = None,
     iters: Annotated[int | None, typer.Option(help="Training iterations (default: as many as --minutes allows).")] = None,
     weight: Annotated[str, typer.Option(help="Weight of the volume rendering: neudf, or the closed-surface "

@@ -50,8 +50,14 @@ __all__ = ["JobOptions", "STAGES", "STAGE_NAMES", "run_pipeline", "artifact_file
 # The download's files (worker.export writes them; named here, where the service reads the artifact list).
 EXPORT_FILES = ("mesh.glb", "mesh.obj", "mesh.mtl", "mesh.png", "mesh.usdz", "mesh.ply")
 
-# Sized so a 10 s phone video finishes end to end within about 20 minutes on a 2-core CPU.
+# A job with no budget of its own ends within DEFAULT_JOB_MINUTES of its start on a 2-core CPU: training takes
+# what the capture left, less what meshing and export need, between MIN_ and DEFAULT_TRAIN_MINUTES (the
+# poses stage of a 10 s video takes 6-10 minutes, its mapping varying most).
+DEFAULT_JOB_MINUTES = 19.0
 DEFAULT_TRAIN_MINUTES = 9.0
+MIN_TRAIN_MINUTES = 5.0
+AFTER_TRAIN_MINUTES = 1.5
+CAPTURE_STAGES = ("frames", "poses", "scene")
 
 
 class JobOptions(BaseModel):
@@ -61,8 +67,10 @@ class JobOptions(BaseModel):
 
     preset: str | None = Field(None, description="Training preset (default: the device's, quick on a CPU, gpu on "
                                "CUDA); also fast, paper.")
-    minutes: float | None = Field(None, gt=0, le=24 * 60, description="Training budget in minutes (default "
-                                  f"{DEFAULT_TRAIN_MINUTES:g}); training stops when it is spent or at iters.")
+    minutes: float | None = Field(None, gt=0, le=24 * 60, description="Training budget in minutes (default: "
+                                  f"what the capture left of {DEFAULT_JOB_MINUTES:g} minutes end to end, "
+                                  f"{MIN_TRAIN_MINUTES:g}-{DEFAULT_TRAIN_MINUTES:g}); training stops when it is "
+                                  "spent or at iters.")
     weight: Literal["neudf", "neus_sdf", "neus_abs"] = Field(
         "neudf", description="Rendering weight: neudf (open surfaces), or a baseline: neus_sdf (closed surfaces), "
         "neus_abs (NeuS on |f|).")
@@ -126,10 +134,17 @@ class JobContext:
 
     @property
     def train_minutes(self) -> float | None:
-        """The training budget: the user's, else the default one unless iterations were asked for."""
-        if self.options.minutes is None and self.options.iters is None:
-            return DEFAULT_TRAIN_MINUTES
-        return self.options.minutes
+        """The training budget: the user's; unless iterations were asked for, what the capture stages (their
+        records' seconds) left of :data:`DEFAULT_JOB_MINUTES`, within the default's bounds."""
+        if self.options.minutes is not None or self.options.iters is not None:
+            return self.options.minutes
+        spent = 0.0
+        for name in CAPTURE_STAGES:
+            marker = _marker(self.job_dir, name)
+            if marker.is_file():
+                spent += float(json.loads(marker.read_text()).get("seconds") or 0.0) / 60.0
+        left = DEFAULT_JOB_MINUTES - AFTER_TRAIN_MINUTES - spent
+        return round(min(DEFAULT_TRAIN_MINUTES, max(MIN_TRAIN_MINUTES, left)), 2)
 
     @property
     def frames(self) -> int:
