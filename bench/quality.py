@@ -48,6 +48,7 @@ sys.path.insert(0, str(ROOT))
 from neudf_core import synthetic  # noqa: E402
 from neudf_core.config import deep_merge, load_config  # noqa: E402
 from neudf_core.extract import mesh_run  # noqa: E402
+from neudf_core.meshing.lids import SPREAD_LID  # noqa: E402
 from neudf_core.metrics import boundary_loops, evaluate  # noqa: E402
 from neudf_core.numerics import flush_denormals  # noqa: E402
 from neudf_core.trainer import fit_schedule_to_iters, train  # noqa: E402
@@ -123,7 +124,8 @@ def run_one(data: Path, run_dir: Path, weight: str, args: argparse.Namespace, gt
     t1 = time.perf_counter()
     try:
         pred = mesh_run(run_dir, run_dir / "mesh.ply", method=method, resolution=args.resolution, device=args.device,
-                        views=data if args.min_seen > 0 else None, min_seen_fraction=args.min_seen)
+                        views=data if args.min_seen > 0 else None, min_seen_fraction=args.min_seen,
+                        lid_spread=args.lid_spread)
     except ValueError as exc:  # e.g. no surface yet after a tiny budget: a result, not a crash
         row.update(error=str(exc), chamfer=None, fscore=None, boundary_loops_pred=None)
         return row
@@ -132,7 +134,7 @@ def run_one(data: Path, run_dir: Path, weight: str, args: argparse.Namespace, gt
     row.update(metrics)
     info = pred.metadata.get("meshing", {})
     row.update(faces=len(pred.faces), mesh_threshold=info.get("threshold"), min_seen=args.min_seen,
-               faces_unseen=info.get("faces_unseen"))
+               faces_unseen=info.get("faces_unseen"), lid_spread=args.lid_spread, faces_lids=info.get("faces_lids"))
     return row
 
 
@@ -233,7 +235,8 @@ NEUDF_ONLY = {"renderer.varsigma", "renderer.sharpness_floor_end", "renderer.rec
 UNSIGNED_ONLY = {"field.output", "loss.zero_region_weight", "loss.zero_region_margin"}
 
 # Settings that must agree for rows of two runs to sit in one table.
-_COMPARABLE = ("preset", "iters", "views", "size", "max_size", "udf_mesh_method", "background", "resolution", "samples")
+_COMPARABLE = ("preset", "iters", "views", "size", "max_size", "udf_mesh_method", "background", "resolution", "samples",
+               "lid_spread")
 
 
 def _report_rows(path: Path, args: argparse.Namespace, meshes: list[str]) -> list[dict[str, Any]]:
@@ -314,6 +317,9 @@ def main() -> None:
     ap.add_argument("--min-seen", type=float, default=0.15,
                     help="drop mesh faces fewer than this share of the scene's cameras see, as the service does "
                          "(0: keep them); applies to the methods trained in this run")
+    ap.add_argument("--lid-spread", type=float, default=SPREAD_LID,
+                    help="with --min-seen: cut patches the frames disagree on the colour of above this, as the "
+                         "service does (0: keep them)")
     ap.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh for the metrics")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0],
                     help="train every method once per seed; the table gives each seed and the mean per mesh "
