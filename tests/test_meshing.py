@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from scipy.spatial import Delaunay
 
 from neudf_core import synthetic
 from neudf_core.export import export_mesh
@@ -453,18 +454,21 @@ def test_a_lid_the_frames_disagree_on_is_cut_and_the_surface_they_agree_on_kept(
 
     data = synthetic.write_neus_dataset(tmp_path / "bowl", synthetic.procedural_mesh("bowl", subdivisions=48),
                                         n_views=32, size=128)
-    bowl = trimesh.load(data / "mesh_gt.ply", process=False)
-    top = bowl.vertices[:, 1].max()
-    radius = np.hypot(bowl.vertices[:, 0], bowl.vertices[:, 2]).max()
-    x, z = np.meshgrid(np.linspace(-radius, radius, 41), np.linspace(-radius, radius, 41))
-    lid = synthetic._grid_mesh(x, np.full_like(x, top - 0.01), z)
-    lid.update_faces(np.hypot(lid.triangles_center[:, 0], lid.triangles_center[:, 2]) < 0.97 * radius)
-    lid.remove_unreferenced_vertices()
-    meshed = trimesh.util.concatenate([bowl, lid])
+    bowl = trimesh.load(data / "mesh_gt.ply", process=True)
+    # the lid: a disc on the bowl's rim, sharing its vertices, as a field closes an opening
+    rim = np.unique(bowl.edges_sorted[trimesh.grouping.group_rows(bowl.edges_sorted, require_count=1)])
+    top, radius = bowl.vertices[rim, 1].mean(), np.hypot(bowl.vertices[rim, 0], bowl.vertices[rim, 2]).mean()
+    x, z = np.meshgrid(np.linspace(-radius, radius, 31), np.linspace(-radius, radius, 31))
+    inner = np.hypot(x, z).ravel() < 0.93 * radius
+    disc = np.c_[x.ravel()[inner], np.full(inner.sum(), top), z.ravel()[inner]]
+    fan = Delaunay(np.r_[bowl.vertices[rim][:, [0, 2]], disc[:, [0, 2]]]).simplices
+    ids = np.r_[rim, len(bowl.vertices) + np.arange(len(disc))]
+    meshed = trimesh.Trimesh(np.r_[bowl.vertices, disc], np.r_[bowl.faces, ids[fan]], process=False)
+    assert boundary_loops(meshed) == 0  # lidded: no opening left
     cameras, frames, voxel = load_cameras(data), image_paths(data), 2.0 / 128
 
     spread = colour_spread(meshed, cameras, frames, tol=2 * voxel)
-    on_lid = np.arange(len(meshed.vertices)) >= len(bowl.vertices)
+    on_lid = np.arange(len(meshed.vertices)) >= len(bowl.vertices)  # the disc's inner vertices
     outside = ~on_lid & (meshed.vertex_normals[:, 1] < -0.5)  # the bowl's underside, seen from below
     assert np.nanmedian(spread[on_lid]) > SPREAD_LID > 0.1 > np.nanmedian(spread[outside])
     cut = lid_faces(meshed, spread, rings=2)
@@ -472,7 +476,7 @@ def test_a_lid_the_frames_disagree_on_is_cut_and_the_surface_they_agree_on_kept(
     assert cut[n_bowl:].mean() > 0.8 and cut[:n_bowl].mean() < 0.02, (cut[n_bowl:].mean(), cut[:n_bowl].mean())
 
     opened = open_lids(meshed.copy(), cameras, frames, tol=2 * voxel, voxel=voxel)
-    assert opened.metadata["meshing"]["faces_lids"] == int(cut.sum())
+    assert opened.metadata["meshing"]["faces_lids"] == int(cut.sum()) and boundary_loops(opened) >= 1
     assert len(open_lids(meshed.copy(), cameras, frames, tol=2 * voxel, voxel=voxel, lid=0).faces) == len(meshed.faces)
 
 
@@ -501,3 +505,22 @@ def test_cloth_printed_on_one_side_is_not_a_lid(tmp_path):
     spread = colour_spread(meshed, cameras, image_paths(data), tol=2 * voxel)
     assert np.nanmedian(spread) < 0.1 < SPREAD_LID
     assert not lid_faces(meshed, spread, rings=2).any()
+
+
+def test_only_patches_enclosed_by_surface_are_lids():
+    """A patch of scatter inside a sheet is a lid; one reaching the sheet's edge (or a hole's) is where
+    the frames mix in the surroundings or the mesh is off beside an opening, and stays; so do streaks."""
+    from neudf_core.meshing.lids import lid_faces
+
+    grid = np.linspace(-1.0, 1.0, 61)
+    x, z = np.meshgrid(grid, grid)
+    sheet = synthetic._grid_mesh(x, np.zeros_like(x), z)
+    v = sheet.vertices
+    inside = np.hypot(v[:, 0] - 0.3, v[:, 2] - 0.3) < 0.25  # a lid, well inside
+    at_edge = np.hypot(v[:, 0] + 1.0, v[:, 2] + 0.5) < 0.3  # as large, at the edge
+    streak = (np.abs(v[:, 0] + 0.2) < 0.02) & (np.abs(v[:, 2] - 0.3) < 0.5)  # a texture's edge, one vertex wide
+    spread = np.where(inside | at_edge | streak, 0.4, 0.02)
+    cut = lid_faces(sheet, spread, rings=2)
+    centres = sheet.triangles_center
+    assert cut[np.hypot(centres[:, 0] - 0.3, centres[:, 2] - 0.3) < 0.2].all()
+    assert not cut[centres[:, 0] < -0.5].any() and not cut[np.abs(centres[:, 0] + 0.2) < 0.1].any()

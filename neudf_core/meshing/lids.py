@@ -9,7 +9,7 @@ median over a patch of the mesh, the patch is a lid and is cut out: the opening 
 
 Thin streaks of scatter (a texture's edge under a pixel of pose or mesh error) are not lids: the patches
 are opened morphologically (shrunk and grown back by a few face rings) before they count, and small ones
-are kept.
+are kept, as are patches that reach the mesh's boundary (see :func:`lid_faces`).
 """
 
 from __future__ import annotations
@@ -112,16 +112,18 @@ def _grow(graph: csr_matrix, mask: np.ndarray, rings: int) -> np.ndarray:
 
 def lid_faces(mesh: trimesh.Trimesh, spread: np.ndarray, rings: int, lid: float = SPREAD_LID,
               rim: float = SPREAD_RIM, min_area: float = MIN_LID_AREA) -> np.ndarray:
-    """Which faces are lids: faces whose vertices' mean ``spread`` exceeds ``lid`` (``rings`` face rings or
-    more from the mesh's boundary), less streaks narrower than 2 ``rings`` (shrunk away and not grown back),
-    grown into neighbours above ``rim``, in connected patches of at least ``min_area``."""
+    """Which faces are lids: faces whose vertices' mean ``spread`` exceeds ``lid``, less streaks narrower than
+    2 ``rings`` face rings (shrunk away and not grown back), grown into neighbours above ``rim``, in connected
+    patches of at least ``min_area`` that stay ``rings`` or more from the mesh's boundary."""
     graph = _face_graph(mesh)
     face_spread = np.nan_to_num(spread)[mesh.faces].mean(axis=1)  # unseen: no verdict, not a lid
-    # A lid spans an opening, its rim on the cloth; at the mesh's own edges (a hem) the frames mix the
-    # surroundings into the colour read, so no lid starts there.
+    # A lid closes an opening: surface all around it. A patch reaching the mesh's boundary is not one: at a
+    # hem the frames mix the surroundings into the colours read, and beside a hole the field left (a held-out
+    # bowl's bottom) the surface is off, so the frames disagree there too, and cutting it only widens the hole.
     border = np.zeros(len(mesh.faces), bool)
     border[mesh.edges_face[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]] = True
-    high = (face_spread > lid) & ~_grow(graph, border, rings)
+    near_border = _grow(graph, border, rings)
+    high = (face_spread > lid) & ~near_border
     core = ~_grow(graph, ~high, rings)
     patch = _grow(graph, core, rings) & high
     above_rim = face_spread > rim
@@ -135,8 +137,9 @@ def lid_faces(mesh: trimesh.Trimesh, spread: np.ndarray, rings: int, lid: float 
         return patch
     _, labels = connected_components(graph[idx][:, idx], directed=False)
     area = np.bincount(labels, weights=mesh.area_faces[idx])
+    at_border = np.bincount(labels, weights=near_border[idx]) > 0
     out = np.zeros(len(mesh.faces), bool)
-    out[idx[area[labels] >= min_area]] = True
+    out[idx[(area[labels] >= min_area) & ~at_border[labels]]] = True
     return out
 
 
