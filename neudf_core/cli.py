@@ -149,9 +149,9 @@ def mesh_command(
     threshold: Annotated[float | None, typer.Option(help="UDF value counted as surface (default: per method)")] = None,
     views: Annotated[Path | None, typer.Option(help="the run's dataset folder: drop faces its cameras do not see")] = None,
     min_seen: Annotated[float, typer.Option(help="with --views: the share of cameras that must see a face")] = 0.15,
-    lid_spread: Annotated[float | None, typer.Option(help="with --views: colour scatter across the frames above "
-                                                          "which a seen patch is cut as a lid over an opening "
-                                                          "(default 0.2); 0 keeps lids")] = None,
+    lid_spread: Annotated[float, typer.Option(help="with --views: cut seen patches whose colour the frames "
+                                                   "scatter about by more than this as lids over openings (0.2 "
+                                                   "opens lidded necks; 0, the default, keeps them)")] = 0.0,
     faces: Annotated[int, typer.Option(help=f"faces of the mesh written (quadric decimation, open boundaries kept; "
                                             f"default {DEFAULT_FACES:,}); 0 keeps every face")] = DEFAULT_FACES,
     texture_size: Annotated[int | None, typer.Option(help=f"with --views: side of the texture baked from the frames, "
@@ -168,7 +168,7 @@ def mesh_command(
         fail(f"--resolution must be between 16 and 2048, got {resolution}")
     if not 0.0 < min_seen <= 1.0:
         fail(f"--min-seen is a share of the cameras, in (0, 1], got {min_seen}")
-    if lid_spread is not None and lid_spread < 0:
+    if lid_spread < 0:
         fail(f"--lid-spread is a colour distance, 0 or more, got {lid_spread}")
     if faces < 0 or 0 < faces < MIN_FACES:
         fail(f"--faces must be 0 (every face) or at least {MIN_FACES}, got {faces}")
@@ -181,9 +181,8 @@ def mesh_command(
              f"got {texture_size}")
     with user_errors(), progress_bar("meshing") as report:
         mesh = mesh_run(run, out, method=method.value, resolution=resolution, threshold=threshold, views=views,
-                        min_seen_fraction=min_seen, faces=faces, texture_size=texture_size, device=device.value,
-                        **({} if lid_spread is None else {"lid_spread": lid_spread}),
-                        progress=report)
+                        min_seen_fraction=min_seen, lid_spread=lid_spread, faces=faces, texture_size=texture_size,
+                        device=device.value, progress=report)
     typer.echo(json.dumps({"mesh": str(out), "vertices": len(mesh.vertices), "faces": len(mesh.faces),
                            "textured": texture_size > 0}))
 

@@ -22,6 +22,7 @@ from neudf_core import synthetic
 from neudf_core.export import export_mesh
 from neudf_core.extract import mesh_run
 from neudf_core.meshing import NoSurfaceError, color_vertices, extract_mesh
+from neudf_core.meshing.lids import SPREAD_LID
 from neudf_core.meshing.cleanup import drop_floor_pieces, fill_small_holes, trim_floor_skirt
 from neudf_core.metrics import boundary_loops
 
@@ -387,13 +388,15 @@ def test_mesh_run_end_to_end_on_a_trained_run(tiny_scene, tmp_path):
     with pytest.raises(ValueError, match="signed"):
         mesh_run(sdf_run, tmp_path / "x.glb", method="meshudf", resolution=32)
     # with the dataset's cameras: the sphere's faces all face some of the orbit, so culling keeps most
-    seen = mesh_run(sdf_run, tmp_path / "seen.ply", method="mc", resolution=32, views=tiny_scene, lid_spread=0)
+    seen = mesh_run(sdf_run, tmp_path / "seen.ply", method="mc", resolution=32, views=tiny_scene)
     info = seen.metadata["meshing"]
     assert info["cameras"] == len(list((tiny_scene / "image").glob("*.png")))
     assert 0 < len(seen.faces) <= len(mesh.faces) and info["faces_unseen"] == len(mesh.faces) - len(seen.faces)
     assert info["faces_lids"] == 0
-    # ...but the frames show a sheet, not this sphere: they disagree on its colour, and most of it is cut
-    lidded = mesh_run(sdf_run, tmp_path / "lids.ply", method="mc", resolution=32, views=tiny_scene)
+    # ...but the frames show a sheet, not this sphere: they disagree on its colour, and asked to, the
+    # mesh stage cuts most of it
+    lidded = mesh_run(sdf_run, tmp_path / "lids.ply", method="mc", resolution=32, views=tiny_scene,
+                      lid_spread=SPREAD_LID)
     cut = lidded.metadata["meshing"]["faces_lids"]
     assert cut > len(seen.faces) / 2 and len(lidded.faces) < len(seen.faces)
     with pytest.raises(ValueError, match="does not exist"):

@@ -36,6 +36,8 @@ log = logging.getLogger(__name__)
 SAMPLE_SPHERE_PX = 240
 # Scatter of a vertex: the median over its cameras of the L1 distance (RGB in 0..1) of their colour from
 # the median colour. Cloth on video reads 0.01-0.05 (median 0.03); lids over a polo's neck and sleeves 0.2-0.5.
+# The mesh stage cuts nothing unless asked (mesh_lid_spread): where the field misplaces real cloth the frames
+# disagree as much, and on one garment of five that cut a hole in its chest (docs/experiments.md).
 SPREAD_LID = 0.2
 # A lid's patch grows from the faces above SPREAD_LID into neighbours above this (its rim, seen at an angle).
 SPREAD_RIM = 0.1
