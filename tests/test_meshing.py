@@ -510,6 +510,35 @@ def test_cloth_printed_on_one_side_is_not_a_lid(tmp_path):
     assert not lid_faces(meshed, spread, rings=2).any()
 
 
+def test_cloth_the_field_placed_a_little_off_is_not_a_lid(tmp_path):
+    """A printed sheet meshed with a bump 0.03 off the true cloth, as a field carves a print into a crease:
+    at the mesh the frames disagree about the bump as much as about a lid, but just behind it they agree
+    (the cloth itself), so it stays. Asked at the mesh alone, the bump is cut."""
+    from neudf_core.dataset import image_paths, load_cameras
+    from neudf_core.meshing.lids import SPREAD_LID, colour_spread, lid_faces
+
+    grid = np.linspace(-0.8, 0.8, 9)
+    x, z = np.meshgrid(grid, grid)
+    cloth = synthetic._grid_mesh(x, np.zeros_like(x), z)
+    colours = np.random.default_rng(0).integers(0, 256, (len(cloth.vertices), 3)).astype(np.uint8)
+    cloth.visual = trimesh.visual.ColorVisuals(cloth, vertex_colors=np.c_[colours, np.full(len(colours), 255, np.uint8)])
+    data = synthetic.write_neus_dataset(tmp_path / "cloth", cloth, n_views=32, size=128)
+    fine = np.linspace(-0.8, 0.8, 97)
+    x, z = np.meshgrid(fine, fine)
+    meshed = synthetic._grid_mesh(x, np.zeros_like(x), z)
+    meshed.apply_transform(np.linalg.inv(synthetic.unit_sphere_transform(cloth)))
+    r = np.hypot(meshed.vertices[:, 0], meshed.vertices[:, 2])
+    meshed.vertices[:, 1] += 0.03 * np.clip((0.35 - r) / 0.1, 0.0, 1.0)  # a plateau off the cloth, inside
+    cameras, frames, voxel = load_cameras(data), image_paths(data), 2.0 / 128
+
+    at_mesh = colour_spread(meshed, cameras, frames, tol=2 * voxel, near=0.0)
+    assert np.nanmedian(at_mesh[r < 0.2]) > SPREAD_LID > 0.1 > np.nanmedian(at_mesh[r > 0.4])
+    assert lid_faces(meshed, at_mesh, rings=2).sum() > 1000
+    spread = colour_spread(meshed, cameras, frames, tol=2 * voxel)
+    assert np.nanmedian(spread[r < 0.2]) < 0.1
+    assert not lid_faces(meshed, spread, rings=2).any()
+
+
 def test_only_patches_enclosed_by_surface_are_lids():
     """A patch of scatter inside a sheet is a lid; one reaching the sheet's edge (or a hole's) is where
     the frames mix in the surroundings or the mesh is off beside an opening, and stays; so do streaks."""

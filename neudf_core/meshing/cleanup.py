@@ -345,17 +345,23 @@ def sightings(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, tol: fl
                         o3d.core.Tensor(np.asarray(faces, np.uint32)))
     for K, c2w in zip(cameras.intrinsics, cameras.c2w):
         centre = c2w[:3, 3]
-        offset = vertices - centre
-        in_camera = offset @ c2w[:3, :3]  # R^T (x - c) for each row
-        z = in_camera[:, 2]
-        pixels = in_camera @ K.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u, v = pixels[:, 0] / z, pixels[:, 1] / z
+        pixels, z = project(vertices, K, c2w)
+        u, v = pixels[:, 0], pixels[:, 1]
         in_view = (z > 1e-9) & (u >= 0) & (u <= cameras.width) & (v >= 0) & (v <= cameras.height)
+        offset = vertices - centre
         dist = np.linalg.norm(offset, axis=1)
         rays = np.concatenate([np.broadcast_to(centre, offset.shape), offset / np.maximum(dist, 1e-12)[:, None]], 1)
         hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
-        yield in_view & (hit >= dist - tol), np.stack([u, v], axis=1)
+        yield in_view & (hit >= dist - tol), pixels
+
+
+def project(points: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where world ``points`` (N, 3) land in a camera's image ((N, 2) pixels) and their depth along its axis."""
+    in_camera = (points - c2w[:3, 3]) @ c2w[:3, :3]  # R^T (x - c) for each row
+    z = in_camera[:, 2]
+    pixels = in_camera @ K.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return pixels[:, :2] / z[:, None], z
 
 
 def views_seeing(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, tol: float) -> np.ndarray:

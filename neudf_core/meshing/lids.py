@@ -7,6 +7,11 @@ surface looks the same from every camera that sees it (its texture, up to shadin
 vertex's colour is read in every frame whose camera sees it, and where those colours scatter far from their
 median over a patch of the mesh, the patch is a lid and is cut out: the opening shows again.
 
+Misplaced cloth scatters too: where the field carves a print into a crease a little off the true cloth,
+the frames disagree at the mesh. They agree a step in front of or behind it, at the cloth; through a lid
+they agree only on the inside, an opening's depth away. So each vertex is also asked at points just off
+it along its normal, and the least scatter counts.
+
 Thin streaks of scatter (a texture's edge under a pixel of pose or mesh error) are not lids: the patches
 are opened morphologically (shrunk and grown back by a few face rings) before they count, and small ones
 are kept, as are patches that reach the mesh's boundary (see :func:`lid_faces`).
@@ -27,7 +32,7 @@ from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from neudf_core.dataset import Cameras, cameras_sphere_px
-from neudf_core.meshing.cleanup import sightings
+from neudf_core.meshing.cleanup import project, sightings
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +47,12 @@ SPREAD_LID = 0.2
 # A lid's patch grows from the faces above SPREAD_LID into neighbours above this (its rim, seen at an angle).
 SPREAD_RIM = 0.1
 MIN_VIEWS = 3  # fewer cameras than this: no verdict
+# Where the field places real cloth a little off (a print carved into creases), the frames disagree at the
+# mesh but agree at a point just in front of or behind it; through a lid they agree only on the inside, an
+# opening's depth away. So a vertex's scatter is the least over points within this distance along its normal
+# (unit sphere), tried at DEPTH_STEPS depths each way.
+NEAR_DEPTH = 0.04
+DEPTH_STEPS = 4
 OPEN_WIDTH = 0.016  # streaks narrower than about twice this (unit sphere) are not lids
 MIN_LID_AREA = 0.002  # smallest lid (unit sphere units squared; a sleeve's end is 0.01-0.03)
 
@@ -59,12 +70,15 @@ def read_frames(paths: Sequence[Path], scale: float) -> list[np.ndarray]:
     return out
 
 
-def colour_spread(mesh: trimesh.Trimesh, cameras: Cameras, frames: Sequence[Path], tol: float) -> np.ndarray:
+def colour_spread(mesh: trimesh.Trimesh, cameras: Cameras, frames: Sequence[Path], tol: float,
+                  near: float = NEAR_DEPTH, above: float = SPREAD_RIM) -> np.ndarray:
     """Per vertex, how far the frames that see it scatter about its colour (see :data:`SPREAD_LID`); NaN
     where fewer than :data:`MIN_VIEWS` cameras see it. ``frames``: one image per camera, full size.
 
     Each side of the surface (by the vertex normal) has its own median colour: cloth may be printed outside
-    and plain inside, and a camera looking up through a hem sees the inside of the same sheet.
+    and plain inside, and a camera looking up through a hem sees the inside of the same sheet. Where the
+    scatter exceeds ``above``, the same cameras are asked again at points up to ``near`` in front of and
+    behind the vertex along its normal, and the least scatter counts (see :data:`NEAR_DEPTH`).
     """
     if len(frames) != len(cameras):
         raise ValueError(f"{len(frames)} frames for {len(cameras)} cameras")
@@ -75,13 +89,39 @@ def colour_spread(mesh: trimesh.Trimesh, cameras: Cameras, frames: Sequence[Path
     colours = np.zeros((len(cameras), n, 3), np.uint8)  # 0..255 keeps 200 views x 100k vertices small
     side = np.zeros((len(cameras), n), np.int8)  # +1 / -1: the camera is in front of / behind the vertex; 0: unseen
     for i, (seen, pixels) in enumerate(sightings(vertices, np.asarray(mesh.faces), cameras, tol)):
-        image = images[i]
-        h, w = image.shape[:2]
-        u = np.clip((pixels[seen, 0] * w / cameras.width).astype(np.int64), 0, w - 1)
-        v = np.clip((pixels[seen, 1] * h / cameras.height).astype(np.int64), 0, h - 1)
-        colours[i, seen] = np.round(image[v, u] * 255.0).astype(np.uint8)
+        colours[i, seen] = _colour_at(images[i], pixels[seen], cameras)
         facing = np.einsum("ij,ij->i", cameras.c2w[i, :3, 3] - vertices[seen], normals[seen]) >= 0
         side[i, seen] = np.where(facing, 1, -1)
+    spread = _scatter(colours, side)
+    spread[(side != 0).sum(axis=0) < MIN_VIEWS] = np.nan
+    ask = np.nonzero(spread > above)[0]  # NaN compares False: no verdict stays none
+    if near <= 0 or len(ask) == 0:
+        return spread
+    shifted = np.zeros((len(cameras), len(ask), 3), np.uint8)
+    for depth in np.linspace(-near, near, 2 * DEPTH_STEPS + 1):
+        if depth == 0.0:
+            continue
+        points = vertices[ask] + depth * normals[ask]
+        for i in range(len(cameras)):
+            seen = side[i, ask] != 0
+            pixels, _ = project(points[seen], cameras.intrinsics[i], cameras.c2w[i])
+            shifted[i, seen] = _colour_at(images[i], pixels, cameras)
+        spread[ask] = np.fmin(spread[ask], _scatter(shifted, side[:, ask]))
+    return spread
+
+
+def _colour_at(image: np.ndarray, pixels: np.ndarray, cameras: Cameras) -> np.ndarray:
+    """The colours (0..255) of a scaled frame at full-size ``pixels`` (N, 2), the nearest pixel, clipped."""
+    h, w = image.shape[:2]
+    u = np.clip(np.nan_to_num(pixels[:, 0] * w / cameras.width).astype(np.int64), 0, w - 1)
+    v = np.clip(np.nan_to_num(pixels[:, 1] * h / cameras.height).astype(np.int64), 0, h - 1)
+    return np.round(image[v, u] * 255.0).astype(np.uint8)
+
+
+def _scatter(colours: np.ndarray, side: np.ndarray) -> np.ndarray:
+    """Per vertex, the median over the cameras that see it of the L1 distance of their colour ((C, N, 3),
+    0..255) from the median colour of the cameras on the same side (``side`` (C, N): +1, -1, 0 unseen)."""
+    n = colours.shape[1]
     spread = np.full(n, np.nan)
     chunk = 20000  # float copies of that many vertices at a time
     for start in range(0, n, chunk):
@@ -95,7 +135,6 @@ def colour_spread(mesh: trimesh.Trimesh, cameras: Cameras, frames: Sequence[Path
                 dev = np.abs(own - np.nanmedian(own, axis=0)).sum(axis=2)
                 deviation = np.where(sides[..., 0] == s, dev, deviation)
             spread[start:start + chunk] = np.nanmedian(deviation, axis=0)
-    spread[(side != 0).sum(axis=0) < MIN_VIEWS] = np.nan
     return spread
 
 
@@ -151,7 +190,7 @@ def open_lids(mesh: trimesh.Trimesh, cameras: Cameras, frames: Sequence[Path], t
     that do not count (:data:`OPEN_WIDTH`); ``lid`` <= 0 keeps everything. Records ``faces_lids``."""
     if lid <= 0 or len(mesh.faces) == 0:
         return mesh
-    spread = colour_spread(mesh, cameras, frames, tol)
+    spread = colour_spread(mesh, cameras, frames, tol, above=min(SPREAD_RIM, lid))
     rings = max(1, math.ceil(OPEN_WIDTH / voxel))
     cut = lid_faces(mesh, spread, rings, lid=lid, rim=min(SPREAD_RIM, lid))
     info = mesh.metadata.get("meshing", {})
