@@ -48,6 +48,7 @@ sys.path.insert(0, str(ROOT))
 from neudf_core import synthetic  # noqa: E402
 from neudf_core.config import deep_merge, load_config  # noqa: E402
 from neudf_core.extract import mesh_run  # noqa: E402
+from neudf_core.meshing.lids import SPREAD_LID  # noqa: E402
 from neudf_core.metrics import boundary_loops, evaluate  # noqa: E402
 from neudf_core.numerics import flush_denormals  # noqa: E402
 from neudf_core.trainer import fit_schedule_to_iters, train  # noqa: E402
@@ -318,9 +319,9 @@ def main() -> None:
     ap.add_argument("--min-seen", type=float, default=0.15,
                     help="drop mesh faces fewer than this share of the scene's cameras see, as the service does "
                          "(0: keep them); applies to the methods trained in this run")
-    ap.add_argument("--lid-spread", type=float, default=0.0,
-                    help="with --min-seen: cut patches the frames disagree on the colour of above this as lids "
-                         "(0, the service's default: keep them)")
+    ap.add_argument("--lid-spread", type=float, default=SPREAD_LID,
+                    help="with --min-seen: cut patches the frames disagree on the colour of above this as lids, "
+                         "as the service does (0: keep them)")
     ap.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh for the metrics")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0],
                     help="train every method once per seed; the table gives each seed and the mean per mesh "

@@ -33,6 +33,7 @@ from rich.progress import (
 from rich.text import Text
 
 from neudf_core.decimate import DEFAULT_FACES, MIN_FACES
+from neudf_core.meshing.lids import SPREAD_LID
 from neudf_core.progress import ProgressFn
 from neudf_core.texture import DEFAULT_TEXTURE_SIZE, MAX_TEXTURE_SIZE, MIN_TEXTURE_SIZE
 
@@ -150,8 +151,8 @@ def mesh_command(
     views: Annotated[Path | None, typer.Option(help="the run's dataset folder: drop faces its cameras do not see")] = None,
     min_seen: Annotated[float, typer.Option(help="with --views: the share of cameras that must see a face")] = 0.15,
     lid_spread: Annotated[float, typer.Option(help="with --views: cut seen patches whose colour the frames "
-                                                   "scatter about by more than this as lids over openings (0.2 "
-                                                   "opens lidded necks; 0, the default, keeps them)")] = 0.0,
+                                                   "scatter about by more than this as lids over openings (0 "
+                                                   "keeps them)")] = SPREAD_LID,
     faces: Annotated[int, typer.Option(help=f"faces of the mesh written (quadric decimation, open boundaries kept; "
                                             f"default {DEFAULT_FACES:,}); 0 keeps every face")] = DEFAULT_FACES,
     texture_size: Annotated[int | None, typer.Option(help=f"with --views: side of the texture baked from the frames, "

@@ -16,7 +16,7 @@ from neudf_core.meshing import (
     evaluate_field, extract_mesh,
 )
 from neudf_core.meshing.cleanup import drop_floor_pieces, fill_small_holes, keep_above, trim_floor_skirt
-from neudf_core.meshing.lids import open_lids
+from neudf_core.meshing.lids import SPREAD_LID, open_lids
 from neudf_core.numerics import flush_denormals
 from neudf_core.progress import ProgressFn, null_progress, sub_progress
 from neudf_core.texture import bake_texture
@@ -41,7 +41,7 @@ def mesh_run(
     min_component_fraction: float = 0.01,
     views: str | Path | None = None,
     min_seen_fraction: float = 0.15,
-    lid_spread: float = 0.0,
+    lid_spread: float = SPREAD_LID,
     faces: int = 0,
     texture_size: int = 0,
     device: str = "cpu",
@@ -55,8 +55,8 @@ def mesh_run(
     :func:`extract_mesh`.
     ``views``: the run's dataset folder; faces that fewer than ``min_seen_fraction`` of its cameras see
     are dropped (:func:`cull_unseen`; 0.15 is 8 of 48 views, where culling a tube's and a pants' inner
-    sheets stopped gaining); :class:`NothingSeenError` when that leaves no face. With ``lid_spread`` > 0
-    (:data:`SPREAD_LID` is the measured one), patches the frames disagree on the colour of by more are
+    sheets stopped gaining); :class:`NothingSeenError` when that leaves no face. Then patches the frames
+    disagree on the colour of by more than ``lid_spread`` (default :data:`SPREAD_LID`; 0 keeps them) are
     cut as lids over openings (:func:`open_lids`).
     ``faces`` > 0: decimated to about that many faces (:func:`decimate`); ``texture_size`` > 0 (needs
     ``views``): a texture of that side baked from the dataset's frames (:func:`bake_texture`), and the

@@ -92,7 +92,7 @@ def reconstruct(
     mesh_threshold: Annotated[float | None, typer.Option(help="UDF level under which a face counts as surface.")] = None,
     mesh_min_faces: Annotated[int | None, typer.Option(help="Connected pieces with fewer faces are dropped (default 32).")] = None,
     mesh_min_seen: Annotated[float | None, typer.Option(help="Share of the cameras that must see a face (default 0.15; 0 keeps every face).")] = None,
-    mesh_lid_spread: Annotated[float | None, typer.Option(help="Cut seen patches whose colour the frames scatter about by more than this as lids over openings (0.2 opens lidded necks; default 0: keep them).")] = None,
+    mesh_lid_spread: Annotated[float | None, typer.Option(help="Cut seen patches whose colour the frames scatter about by more than this as lids over openings (default 0.2; 0 keeps them).")] = None,
     faces: Annotated[int, typer.Option(help="Faces of the mesh written (quadric decimation, open boundaries kept); "
                                             "0 keeps every face.")] = DEFAULT_FACES,
     texture_size: Annotated[int, typer.Option(help="Side of the texture baked from the frames, px; 0: vertex "

@@ -87,8 +87,8 @@ class JobOptions(BaseModel):
                                         "face for it to stay (default 0.15): sheets fewer views see are the "
                                         "field's guesses. 0 keeps every face.")
     mesh_lid_spread: float | None = Field(None, ge=0, le=3, description="Cut seen patches whose colour the frames "
-                                          "scatter about by more than this (median L1 over RGB in 0..1; 0.2 "
-                                          "opens lidded necks) as lids over openings. Default 0: keep them.")
+                                          "scatter about by more than this (median L1 over RGB in 0..1; "
+                                          "default 0.2) as lids over openings. 0 keeps them.")
     faces: int = Field(DEFAULT_FACES, ge=0, le=5_000_000, description="Faces of the downloaded mesh (quadric "
                        "decimation, open boundaries kept); 0 keeps every face.")
     texture_size: int = Field(DEFAULT_TEXTURE_SIZE, ge=0, le=MAX_TEXTURE_SIZE, description="Side of the texture baked from the "

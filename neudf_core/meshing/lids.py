@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -41,8 +41,6 @@ log = logging.getLogger(__name__)
 SAMPLE_SPHERE_PX = 240
 # Scatter of a vertex: the median over its cameras of the L1 distance (RGB in 0..1) of their colour from
 # the median colour. Cloth on video reads 0.01-0.05 (median 0.03); lids over a polo's neck and sleeves 0.2-0.5.
-# The mesh stage cuts nothing unless asked (mesh_lid_spread): where the field misplaces real cloth the frames
-# disagree as much, and on one garment of five that cut a hole in its chest (docs/experiments.md).
 SPREAD_LID = 0.2
 # A lid's patch grows from the faces above SPREAD_LID into neighbours above this (its rim, seen at an angle).
 SPREAD_RIM = 0.1
@@ -71,14 +69,17 @@ def read_frames(paths: Sequence[Path], scale: float) -> list[np.ndarray]:
 
 
 def colour_spread(mesh: trimesh.Trimesh, cameras: Cameras, frames: Sequence[Path], tol: float,
-                  near: float = NEAR_DEPTH, above: float = SPREAD_RIM) -> np.ndarray:
-    """Per vertex, how far the frames that see it scatter about its colour (see :data:`SPREAD_LID`); NaN
-    where fewer than :data:`MIN_VIEWS` cameras see it. ``frames``: one image per camera, full size.
+                  near: float = NEAR_DEPTH, sweep: Callable[[np.ndarray], np.ndarray] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Per vertex, how far the frames that see it scatter about its colour (see :data:`SPREAD_LID`): at the
+    vertex, and the least at points near it (below); NaN where fewer than :data:`MIN_VIEWS` cameras see
+    it. ``frames``: one image per camera, full size.
 
     Each side of the surface (by the vertex normal) has its own median colour: cloth may be printed outside
-    and plain inside, and a camera looking up through a hem sees the inside of the same sheet. Where the
-    scatter exceeds ``above``, the same cameras are asked again at points up to ``near`` in front of and
-    behind the vertex along its normal, and the least scatter counts (see :data:`NEAR_DEPTH`).
+    and plain inside, and a camera looking up through a hem sees the inside of the same sheet. The vertices
+    ``sweep(spread)`` picks (a boolean mask; default: scatter above :data:`SPREAD_RIM`) are asked again at
+    points up to ``near`` in front of and behind them along their normal, and the least scatter counts (see
+    :data:`NEAR_DEPTH`).
     """
     if len(frames) != len(cameras):
         raise ValueError(f"{len(frames)} frames for {len(cameras)} cameras")
@@ -94,9 +95,11 @@ def colour_spread(mesh: trimesh.Trimesh, cameras: Cameras, frames: Sequence[Path
         side[i, seen] = np.where(facing, 1, -1)
     spread = _scatter(colours, side)
     spread[(side != 0).sum(axis=0) < MIN_VIEWS] = np.nan
-    ask = np.nonzero(spread > above)[0]  # NaN compares False: no verdict stays none
+    at_vertex = spread.copy()
+    with np.errstate(invalid="ignore"):  # NaN compares False: no verdict stays none
+        ask = np.nonzero(sweep(spread) if sweep is not None else spread > SPREAD_RIM)[0]
     if near <= 0 or len(ask) == 0:
-        return spread
+        return at_vertex, spread
     shifted = np.zeros((len(cameras), len(ask), 3), np.uint8)
     for depth in np.linspace(-near, near, 2 * DEPTH_STEPS + 1):
         if depth == 0.0:
@@ -107,7 +110,7 @@ def colour_spread(mesh: trimesh.Trimesh, cameras: Cameras, frames: Sequence[Path
             pixels, _ = project(points[seen], cameras.intrinsics[i], cameras.c2w[i])
             shifted[i, seen] = _colour_at(images[i], pixels, cameras)
         spread[ask] = np.fmin(spread[ask], _scatter(shifted, side[:, ask]))
-    return spread
+    return at_vertex, spread
 
 
 def _colour_at(image: np.ndarray, pixels: np.ndarray, cameras: Cameras) -> np.ndarray:
@@ -152,35 +155,47 @@ def _grow(graph: csr_matrix, mask: np.ndarray, rings: int) -> np.ndarray:
 
 
 def lid_faces(mesh: trimesh.Trimesh, spread: np.ndarray, rings: int, lid: float = SPREAD_LID,
-              rim: float = SPREAD_RIM, min_area: float = MIN_LID_AREA) -> np.ndarray:
+              rim: float = SPREAD_RIM, min_area: float = MIN_LID_AREA, rim_spread: np.ndarray | None = None
+              ) -> np.ndarray:
     """Which faces are lids: faces whose vertices' mean ``spread`` exceeds ``lid``, less streaks narrower than
-    2 ``rings`` face rings (shrunk away and not grown back), grown into neighbours above ``rim``, in connected
-    patches of at least ``min_area`` that stay ``rings`` or more from the mesh's boundary."""
+    2 ``rings`` face rings (shrunk away and not grown back), in connected patches of at least ``min_area``,
+    grown into neighbours whose ``rim_spread`` (default ``spread``) exceeds ``rim``, and only the patches
+    that then stay ``rings`` or more from the mesh's boundary."""
     graph = _face_graph(mesh)
-    face_spread = np.nan_to_num(spread)[mesh.faces].mean(axis=1)  # unseen: no verdict, not a lid
+
+    def per_face(values: np.ndarray) -> np.ndarray:
+        return np.nan_to_num(values)[mesh.faces].mean(axis=1)  # unseen: no verdict, not a lid
+
     # A lid closes an opening: surface all around it. A patch reaching the mesh's boundary is not one: at a
     # hem the frames mix the surroundings into the colours read, and beside a hole the field left (a held-out
     # bowl's bottom) the surface is off, so the frames disagree there too, and cutting it only widens the hole.
     border = np.zeros(len(mesh.faces), bool)
     border[mesh.edges_face[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]] = True
     near_border = _grow(graph, border, rings)
-    high = (face_spread > lid) & ~near_border
+    high = (per_face(spread) > lid) & ~near_border
     core = ~_grow(graph, ~high, rings)
     patch = _grow(graph, core, rings) & high
-    above_rim = face_spread > rim
+    above_rim = per_face(spread if rim_spread is None else rim_spread) > rim
     while True:
         grown = patch | (_grow(graph, patch, 1) & above_rim)
         if grown.sum() == patch.sum():
             break
         patch = grown
-    idx = np.nonzero(patch)[0]
+    return _patches(graph, patch, mesh.area_faces, min_area, avoid=near_border)
+
+
+def _patches(graph: csr_matrix, mask: np.ndarray, area: np.ndarray, min_area: float,
+             avoid: np.ndarray | None = None) -> np.ndarray:
+    """``mask`` less its connected patches smaller than ``min_area`` or touching ``avoid``."""
+    idx = np.nonzero(mask)[0]
     if len(idx) == 0:
-        return patch
+        return mask
     _, labels = connected_components(graph[idx][:, idx], directed=False)
-    area = np.bincount(labels, weights=mesh.area_faces[idx])
-    at_border = np.bincount(labels, weights=near_border[idx]) > 0
-    out = np.zeros(len(mesh.faces), bool)
-    out[idx[(area[labels] >= min_area) & ~at_border[labels]]] = True
+    keep = np.bincount(labels, weights=area[idx]) >= min_area
+    if avoid is not None:
+        keep &= np.bincount(labels, weights=avoid[idx], minlength=len(keep)) == 0
+    out = np.zeros(len(mask), bool)
+    out[idx[keep[labels]]] = True
     return out
 
 
@@ -190,9 +205,20 @@ def open_lids(mesh: trimesh.Trimesh, cameras: Cameras, frames: Sequence[Path], t
     that do not count (:data:`OPEN_WIDTH`); ``lid`` <= 0 keeps everything. Records ``faces_lids``."""
     if lid <= 0 or len(mesh.faces) == 0:
         return mesh
-    spread = colour_spread(mesh, cameras, frames, tol, above=min(SPREAD_RIM, lid))
     rings = max(1, math.ceil(OPEN_WIDTH / voxel))
-    cut = lid_faces(mesh, spread, rings, lid=lid, rim=min(SPREAD_RIM, lid))
+
+    def lids(spread: np.ndarray, rim_spread: np.ndarray | None = None) -> np.ndarray:
+        return lid_faces(mesh, spread, rings, lid=lid, rim=min(SPREAD_RIM, lid), rim_spread=rim_spread)
+
+    def on_lids(spread: np.ndarray) -> np.ndarray:  # only a lid's vertices can change the verdict
+        mask = np.zeros(len(mesh.vertices), bool)
+        mask[mesh.faces[lids(spread)].ravel()] = True
+        return mask
+
+    # whether a patch is a lid: no depth near it explains the frames; how far it reaches: where they
+    # disagree at the mesh (a lid's rim, where the inside lies close behind it, too)
+    at_vertex, least = colour_spread(mesh, cameras, frames, tol, sweep=on_lids)
+    cut = lids(least, rim_spread=at_vertex)
     info = mesh.metadata.get("meshing", {})
     log.info("cut %d faces of lids (the frames disagree on their colour)", int(cut.sum()))
     if cut.any():
