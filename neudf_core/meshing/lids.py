@@ -158,9 +158,9 @@ def lid_faces(mesh: trimesh.Trimesh, spread: np.ndarray, rings: int, lid: float 
               rim: float = SPREAD_RIM, min_area: float = MIN_LID_AREA, rim_spread: np.ndarray | None = None
               ) -> np.ndarray:
     """Which faces are lids: faces whose vertices' mean ``spread`` exceeds ``lid``, less streaks narrower than
-    2 ``rings`` face rings (shrunk away and not grown back), in connected patches of at least ``min_area``,
-    grown into neighbours whose ``rim_spread`` (default ``spread``) exceeds ``rim``, and only the patches
-    that then stay ``rings`` or more from the mesh's boundary."""
+    2 ``rings`` face rings (shrunk away and not grown back), grown into neighbours whose ``rim_spread``
+    (default ``spread``) exceeds ``rim``, in connected patches of at least ``min_area`` that stay ``rings``
+    or more from the mesh's boundary."""
     graph = _face_graph(mesh)
 
     def per_face(values: np.ndarray) -> np.ndarray:
