@@ -107,10 +107,12 @@ def mesh_run(
             raise NothingSeenError(
                 f"no face is seen by {min_seen_fraction:.0%} of the {len(cameras)} cameras in {views}")
         unseen = faces_before - len(mesh.faces)
-        # what culling opened, as extraction does (and tears the field covers, where fill_covered allows)
+        # what culling opened, as extraction does: small holes, slits (and tears the field covers, where
+        # fill_covered allows)
         mesh = fill_small_holes(mesh, info.get("fill_holes") or 0.0, field_perimeter=info.get("fill_covered") or 0.0,
                                 field_level=info["threshold"],
-                                field=lambda p: evaluate_field(model.udf, p, device=device))
+                                field=lambda p: evaluate_field(model.udf, p, device=device),
+                                slit_perimeter=info.get("fill_slits") or 0.0, slit_width=info.get("slit_width") or 0.0)
         mesh.metadata["meshing"] = {**info, "views": str(views), "cameras": len(cameras),
                                     "min_seen_fraction": min_seen_fraction, "faces_unseen": unseen - lids,
                                     "lid_spread": lid_spread, "faces_lids": lids}

@@ -241,6 +241,27 @@ def test_holes_the_size_of_a_flaw_are_closed_and_openings_kept():
     assert boundary_loops(extract_mesh(sheet_with_two_holes, method="meshudf", resolution=RES, fill_holes=0)) == 3
 
 
+def test_slits_are_closed_and_round_openings_of_their_length_kept():
+    """A tear whose edges lie close together is closed though it is longer than a flaw; a round opening
+    as long is kept, and so is a slit longer than the slit length."""
+    from neudf_core.meshing.cleanup import fill_small_holes
+
+    grid = np.linspace(-1.0, 1.0, 201)  # 0.01 spacing
+    x, z = np.meshgrid(grid, grid)
+    sheet = synthetic._grid_mesh(x, np.zeros_like(x), z)
+    c = sheet.triangles_center
+    slit = (np.abs(c[:, 0] + 0.495) < 0.005) & (np.abs(c[:, 2]) < 0.2)  # 0.4 long, one cell wide
+    long_slit = (np.abs(c[:, 0] - 0.005) < 0.005) & (np.abs(c[:, 2]) < 0.7)  # 1.4 long
+    round_ = np.hypot(c[:, 0] - 0.5, c[:, 2]) < 0.12  # perimeter about 0.75
+    torn = trimesh.Trimesh(sheet.vertices, sheet.faces[~(slit | long_slit | round_)], process=False)
+    assert boundary_loops(torn) == 4
+    filled = fill_small_holes(torn, 0.25, slit_perimeter=1.0, slit_width=0.02)
+    assert boundary_loops(filled) == 3  # the sheet's edge, the round opening and the long slit
+    centres = filled.vertices[len(torn.vertices):]
+    assert len(centres) == 1 and abs(centres[0, 0] + 0.5) < 0.01  # the one fan's centre lies in the short slit
+    assert boundary_loops(fill_small_holes(torn, 0.25)) == 4  # slits are kept when not asked
+
+
 def test_sheets_resting_on_the_floor_cut_are_dropped_and_what_stands_there_kept():
     floor = -0.7
     grid = np.linspace(-0.4, 0.4, 9)

@@ -138,21 +138,26 @@ def orient_faces(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 
 
 def fill_small_holes(mesh: trimesh.Trimesh, max_perimeter: float, *, field: Callable[[np.ndarray], np.ndarray] |
-                     None = None, field_perimeter: float = 0.0, field_level: float = 0.0) -> trimesh.Trimesh:
-    """Close boundary loops no longer than ``max_perimeter`` with a fan around their centroid; with a
-    ``field`` (the UDF, points to values), also the loops up to ``field_perimeter`` that the field covers
-    and the mesh does not: the field's median over points across the fan at most ``field_level``, and no
-    vertex of the mesh nearer the loop's centroid than half the distance to the loop's nearest vertex.
+                     None = None, field_perimeter: float = 0.0, field_level: float = 0.0,
+                     slit_perimeter: float = 0.0, slit_width: float = 0.0) -> trimesh.Trimesh:
+    """Close boundary loops no longer than ``max_perimeter`` with a fan around their centroid; also slits:
+    loops up to ``slit_perimeter`` whose width, twice their vector area over their perimeter (a round
+    hole's radius, a slit's width or less), is at most ``slit_width``; with a ``field`` (the UDF, points to
+    values), also the loops up to ``field_perimeter`` that the field covers and the mesh does not: the
+    field's median over points across the fan at most ``field_level``, and no vertex of the mesh nearer the
+    loop's centroid than half the distance to the loop's nearest vertex.
 
     Where a learned UDF is off by more than a voxel, neighbouring cells can disagree on a pseudo-sign
     and leave a pinhole of a few voxels (more of them at finer resolutions); a real opening of a
     garment is far longer. Larger holes where the field still says "surface" are the same flaw; an
     opening has no surface across it, so the field there is about its radius. (The outer edge of a flat
-    sheet has the field across its fan too, and the sheet itself: the mesh test keeps it.) Loops are
+    sheet has the field across its fan too, and the sheet itself: the mesh test keeps it.) A tear where
+    the field did not close the cloth (a pants' crotch few cameras see) is long but narrow: its two edges
+    lie close together, so its vector area is small; a garment's opening is a wide ring. Loops are
     traced per fan of faces (a pinhole touching another at a vertex is two loops). Expects consistent
     winding: each boundary edge a -> b of a face gets the triangle (b, a, centre).
     """
-    reach = max(max_perimeter, field_perimeter if field is not None else 0.0)
+    reach = max(max_perimeter, slit_perimeter if slit_width > 0 else 0.0, field_perimeter if field is not None else 0.0)
     if reach <= 0 or len(mesh.faces) == 0:
         return mesh
     faces = np.asarray(mesh.faces)
@@ -180,6 +185,11 @@ def fill_small_holes(mesh: trimesh.Trimesh, max_perimeter: float, *, field: Call
     centres_all = sums / np.maximum(n_ids, 1)[:, None]
     by_size = (perimeter <= max_perimeter) & simple
     small = by_size.copy()
+    if slit_width > 0:
+        area = np.cross(mesh.vertices[ends[:, 0]], mesh.vertices[ends[:, 1]]) / 2  # per directed edge
+        vector_area = np.stack([np.bincount(edge_label, weights=area[:, k]) for k in range(3)], 1)
+        width = 2 * np.linalg.norm(vector_area, axis=1) / np.maximum(perimeter, 1e-12)
+        small |= simple & (perimeter <= slit_perimeter) & (width <= slit_width)
     if field is not None:
         candidates = np.nonzero(simple & ~small & (perimeter <= field_perimeter))[0]
         small[candidates[_covered(field, np.asarray(mesh.vertices), vertex_of[ids], labels, centres_all,
@@ -192,7 +202,7 @@ def fill_small_holes(mesh: trimesh.Trimesh, max_perimeter: float, *, field: Call
     centres = centres_all[holes]
     fill = small[edge_label]
     new_faces = np.stack([ends[fill, 1], ends[fill, 0], centre_of[edge_label[fill]]], -1)
-    log.info("filled %d holes (%d up to perimeter %.3g, the rest covered by the field)", len(holes),
+    log.info("filled %d holes (%d up to perimeter %.3g, the rest slits or covered by the field)", len(holes),
              int(by_size.sum()), max_perimeter)
     return trimesh.Trimesh(np.vstack([mesh.vertices, centres]), np.vstack([faces, new_faces]), process=False)
 
