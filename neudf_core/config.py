@@ -30,7 +30,8 @@ class FieldConfig(_Block):
     n_freqs: int = 6
     d_feature: int = 256
     init_radius: float | None = Field(
-        None, description="geometric init radius; None: a point (unsigned) or a sphere of radius 0.5 (signed)")
+        None, description="geometric init radius; None: chosen by the trainer: a sphere of radius 0.5 for the "
+        "signed baseline and for a capture whose sparse points anchor nothing, else a point")
     use_weight_norm: bool = True
     output: Literal["softplus", "abs"] = Field(
         "softplus", description="Psi >= 0 from the last layer's h: Softplus(beta=100) (the paper) or |h| (sharp cusp)")

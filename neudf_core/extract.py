@@ -15,7 +15,8 @@ from neudf_core.meshing import (
     UNIT_BOUNDS, Method, NoSurfaceError, NothingSeenError, color_vertices, cull_unseen, drop_small_components,
     evaluate_field, extract_mesh,
 )
-from neudf_core.meshing.cleanup import drop_floor_pieces, fill_small_holes, keep_above, trim_floor_skirt
+from neudf_core.meshing.cleanup import (drop_floor_pieces, fill_small_holes, keep_above, keep_in_sphere,
+                                        trim_floor_skirt)
 from neudf_core.meshing.lids import SPREAD_LID, open_lids
 from neudf_core.numerics import flush_denormals
 from neudf_core.progress import ProgressFn, null_progress, sub_progress
@@ -28,6 +29,9 @@ FLOOR_BAND = 0.15
 # Faces this low over the cut (unit sphere) and outside the footprint of the object SKIRT_ABOVE higher, grown
 # by SKIRT_MARGIN, are a shadow fused to a standing object's foot.
 SKIRT_BAND, SKIRT_ABOVE, SKIRT_MARGIN = FLOOR_SHADOW_BAND, 0.1, 0.03
+# Separate pieces wholly beyond this radius are dropped: the capture fits the object within 0.7 of the unit
+# sphere (scene's object_fill), clean renders within 0.8.
+SPHERE_RIM = 0.85
 
 
 def mesh_run(
@@ -86,6 +90,10 @@ def mesh_run(
         grad_fn=grad_fn, min_component_faces=min_component_faces, min_component_fraction=min_component_fraction,
         device=device, progress=sub_progress(report, 0.0, 0.85),
     )
+    mesh = keep_in_sphere(mesh, SPHERE_RIM)
+    if len(mesh.faces) == 0:
+        raise NoSurfaceError("the field's surface lies wholly outside the unit sphere, where training renders "
+                             "nothing of the object")
     floor_y = model.cfg.data.floor_y
     if floor_y is not None:  # training rendered nothing of the object below the floor: what is there is a guess
         mesh = keep_above(mesh, floor_y)

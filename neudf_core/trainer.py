@@ -34,6 +34,10 @@ MIN_PRIOR_POINTS = 50  # fewer sparse points of the object outline nothing: no p
 # A sparse point anchors the surface when this many others lie within this radius (unit sphere): a garment's
 # points have a dozen (median), the floor's scatter above the cut and a smooth bowl's few points none.
 ANCHOR_NEIGHBOURS, ANCHOR_RADIUS = 5, 0.05
+# An unsigned field with no anchors starts as a sphere shell that shrinks onto the object (as NeuS-SDF starts),
+# the zero-region term held back for this share of training: grown from the centre with nothing to pull it
+# out, a smooth object's surface lost every ray to the surroundings model.
+SPHERE_START_RADIUS, SPHERE_START_ZERO_REGION_FROM = 0.5, 0.3
 # What may change when a run is resumed with another --iters: the schedule, not the model.
 _SCHEDULE_FIELDS = {"optim": True, "log": True, "renderer": {"cos_anneal_iters"}}
 
@@ -324,6 +328,24 @@ def surface_anchor_points(points: np.ndarray, floor_y: float | None) -> np.ndarr
     return points[(others >= ANCHOR_NEIGHBOURS).numpy()]
 
 
+def resolve_start(cfg: TrainConfig, unanchored: bool) -> TrainConfig:
+    """Fix the field's start where the options leave it open (``field.init_radius`` None). The signed
+    baseline starts as a sphere shell, as NeuS does. So does an unsigned field whose capture has sparse
+    points but none that anchor the surface (``unanchored``), with the zero-region term held back so that the
+    shell first shrinks onto the object. Otherwise an unsigned field starts as the distance to a point and
+    grows where its anchors (or, on clean renders, its colours) are, which keeps lids off openings that a
+    shell would cover."""
+    if cfg.field.init_radius is not None:
+        return cfg
+    signed = cfg.renderer.weight == "neus_sdf"
+    shell = signed or unanchored
+    update = {"field": cfg.field.model_copy(update={"init_radius": SPHERE_START_RADIUS if shell else 0.0})}
+    if shell and not signed:
+        update["loss"] = cfg.loss.model_copy(update={
+            "zero_region_from": max(cfg.loss.zero_region_from, SPHERE_START_ZERO_REGION_FROM)})
+    return cfg.model_copy(update=update)
+
+
 def _check_device(device: str) -> str:
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError("--device cuda asked for, but this machine has no CUDA device (use --device cpu)")
@@ -362,6 +384,16 @@ def train(
     floor = read_floor(data_dir)
     if floor is not None and cfg.data.floor_y is None:
         cfg = cfg.model_copy(update={"data": cfg.data.model_copy(update={"floor_y": floor})})
+    uses_points = cfg.loss.point_prior_weight > 0 or cfg.loss.point_surface_weight > 0
+    captured = read_object_points(data_dir) if uses_points else None
+    points = captured if captured is not None and len(captured) >= MIN_PRIOR_POINTS else None
+    surface_points = None
+    if points is not None and cfg.loss.point_surface_weight > 0:
+        kept = surface_anchor_points(points, cfg.data.floor_y)
+        surface_points = torch.from_numpy(kept) if len(kept) >= MIN_PRIOR_POINTS else None
+    # a capture whose sparse points anchor nothing: the object is smooth or plain where the term relies on them
+    unanchored = cfg.loss.point_surface_weight > 0 and captured is not None and surface_points is None
+    cfg = resolve_start(cfg, unanchored)
     cfg_file = run_dir / "config.json"
     if cfg_file.is_file() and _checkpoints(run_dir):
         stored = load_saved_config(cfg_file.read_text())
@@ -371,22 +403,15 @@ def train(
     data = load_dataset(data_dir, cfg.data.max_size, cfg.data.use_masks, cfg.data.sphere_px)
     if cfg.optim.object_rays > 0:
         data.find_object_pixels()
-    uses_points = cfg.loss.point_prior_weight > 0 or cfg.loss.point_surface_weight > 0
-    points = read_object_points(data_dir) if uses_points else None
-    if points is None or len(points) < MIN_PRIOR_POINTS:
-        points = None
     if points is not None and cfg.loss.point_prior_weight > 0:
         data.find_near_points(torch.from_numpy(points), cfg.loss.point_prior_radius)
-    surface_points = None
-    if points is not None and cfg.loss.point_surface_weight > 0:
-        kept = surface_anchor_points(points, cfg.data.floor_y)
-        surface_points = torch.from_numpy(kept) if len(kept) >= MIN_PRIOR_POINTS else None
     run_dir.mkdir(parents=True, exist_ok=True)
     cfg_file.write_text(cfg.model_dump_json(indent=2))
     trainer = Trainer(data, run_dir, cfg, device, surface_points)
     trainer.resume()
     result = trainer.fit(progress, budget_s=minutes * 60 if minutes is not None else None)
-    result.update(preset=cfg.preset, device=device, images=data.n_images, image_size=[data.width, data.height])
+    result.update(preset=cfg.preset, device=device, images=data.n_images, image_size=[data.width, data.height],
+                  start="point" if cfg.field.init_radius == 0 else "sphere")
     if cfg.loss.point_surface_weight > 0:  # 0: the term was on in the options but had nothing to hold
         result["surface_points"] = 0 if surface_points is None else len(surface_points)
     if minutes is not None:

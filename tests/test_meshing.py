@@ -23,7 +23,7 @@ from neudf_core.export import export_mesh
 from neudf_core.extract import mesh_run
 from neudf_core.meshing import NoSurfaceError, color_vertices, extract_mesh
 from neudf_core.meshing.lids import SPREAD_LID
-from neudf_core.meshing.cleanup import drop_floor_pieces, fill_small_holes, trim_floor_skirt
+from neudf_core.meshing.cleanup import drop_floor_pieces, fill_small_holes, keep_in_sphere, trim_floor_skirt
 from neudf_core.metrics import boundary_loops
 
 RES = 128
@@ -282,6 +282,26 @@ def test_sheets_resting_on_the_floor_cut_are_dropped_and_what_stands_there_kept(
     # the largest piece stays, low or not: a flat object lying on the floor
     alone = drop_floor_pieces(shadow.copy(), floor, band=0.15, touch=0.02)
     assert len(alone.faces) == len(shadow.faces)
+
+
+def test_what_lies_outside_the_unit_sphere_or_apart_at_its_rim_is_dropped():
+    garment = trimesh.creation.icosphere(subdivisions=3)  # the largest piece, reaching out of the sphere
+    garment.apply_scale([1.3, 0.3, 0.05])
+    rim = trimesh.creation.icosphere(subdivisions=2)  # the room caught at the sphere's edge
+    rim.apply_scale(0.05)
+    rim.apply_translation([0.0, -0.5, -0.8])
+    inner = rim.copy()  # a second piece of the object, inside
+    inner.apply_translation([0.0, 0.5, 0.8])
+    mesh = trimesh.util.concatenate([garment, rim, inner])
+    out = keep_in_sphere(mesh.copy(), rim=0.85)
+    assert np.linalg.norm(out.vertices, axis=1).max() <= 1.0
+    pieces = sorted(out.split(only_watertight=False), key=lambda m: len(m.faces))
+    assert len(pieces) == 2 and len(pieces[0].faces) == len(inner.faces), [len(p.faces) for p in pieces]
+    assert pieces[1].vertices[:, 0].max() > 0.9  # the garment is cut at the sphere, not dropped
+    assert out.metadata["meshing"]["faces_outside"] == len(mesh.faces) - len(out.faces)
+    # the largest piece stays wherever it is
+    alone = keep_in_sphere(rim.copy(), rim=0.85)
+    assert len(alone.faces) == len(rim.faces)
 
 
 def test_a_shadow_skirt_fused_to_a_standing_object_is_trimmed_and_its_own_foot_kept():

@@ -339,6 +339,35 @@ def test_point_prior_clears_what_no_sparse_point_backs(sheet_scene, tmp_path):
     assert opacity[1.0] < opacity[0.0] - 0.1, opacity
 
 
+def test_a_capture_without_anchors_starts_from_a_sphere(sheet_scene, tmp_path):
+    """A capture whose sparse points anchor nothing (lone points, as on a smooth bowl) starts the unsigned
+    field as a sphere shell with the zero-region term held back; one with anchors (the sheet's vertices), or
+    data with no sparse points at all (clean renders), starts from a point; a start named in the options is
+    kept."""
+    import shutil
+
+    import trimesh
+
+    vertices = np.asarray(trimesh.load(sheet_scene / "mesh_gt.ply").vertices, dtype=np.float32)
+    lone = np.stack(np.meshgrid(*[np.linspace(-0.6, 0.6, 5)] * 3), -1).reshape(-1, 3).astype(np.float32)
+    assert len(surface_anchor_points(lone, None)) == 0 and len(lone) >= 50
+    base = {"data": {"white_background": True}, "optim": {"rays": 32},
+            "sampler": {"n_coarse": 8, "n_importance": 8}}
+    starts = {}
+    for name, points, field in (("lone", lone, {}), ("anchored", vertices, {}), ("none", None, {}),
+                                ("named", lone, {"init_radius": 0.0})):
+        data_dir = tmp_path / name
+        shutil.copytree(sheet_scene, data_dir)
+        if points is not None:
+            np.save(data_dir / "object_points.npy", points)
+        result = train(data_dir, tmp_path / f"run_{name}", preset="quick", iters=1, overrides={**base, "field": field})
+        cfg = json.loads((tmp_path / f"run_{name}" / "config.json").read_text())
+        starts[name] = (result["start"], cfg["field"]["init_radius"], cfg["loss"]["zero_region_from"])
+    assert starts == {"lone": ("sphere", 0.5, 0.3), "anchored": ("point", 0.0, 0.0), "none": ("point", 0.0, 0.0),
+                      "named": ("point", 0.0, 0.0)}, starts
+    load_model(tmp_path / "run_lone")  # the saved configuration rebuilds the model it trained
+
+
 def test_point_surface_term_pulls_the_field_to_zero_at_sparse_points(sheet_scene, tmp_path):
     """Sparse points of the sheet (half its vertices) given to the point-surface term: after the same short
     training from the same start, Psi is lower at those points and at the sheet's other vertices than

@@ -266,6 +266,34 @@ def keep_above(mesh: trimesh.Trimesh, floor_y: float) -> trimesh.Trimesh:
     return mesh
 
 
+def keep_in_sphere(mesh: trimesh.Trimesh, rim: float) -> trimesh.Trimesh:
+    """Cut the faces that reach outside the unit sphere and drop the pieces, the largest excepted, that lie
+    wholly beyond radius ``rim``.
+
+    Training renders the object only inside the unit sphere (the surroundings model owns the rest of each
+    ray), so surface outside it is unseen guesswork. The capture scales the object to well inside the
+    sphere; a separate piece out at its rim is the room caught at the edge of the rendered volume (a field
+    that starts as a sphere shell can leave one where clutter stands)."""
+    if len(mesh.faces) == 0:
+        return mesh
+    info = mesh.metadata.get("meshing", {})
+    radius = np.linalg.norm(mesh.vertices, axis=1)
+    inside = radius[mesh.faces].max(axis=1) <= 1.0
+    labels = _piece_labels(mesh.faces)
+    nearest = np.full(labels.max() + 1, np.inf)
+    np.minimum.at(nearest, labels, radius[mesh.faces].min(axis=1))
+    at_rim = nearest > rim
+    at_rim[np.bincount(labels).argmax()] = False
+    keep = inside & ~at_rim[labels]
+    if keep.all():
+        return mesh
+    log.info("dropped %d faces outside the unit sphere or at its rim", int((~keep).sum()))
+    mesh.update_faces(keep)
+    mesh.remove_unreferenced_vertices()
+    mesh.metadata["meshing"] = {**info, "faces_outside": int((~keep).sum())}
+    return mesh
+
+
 def drop_floor_pieces(mesh: trimesh.Trimesh, floor_y: float, band: float, touch: float) -> trimesh.Trimesh:
     """Drop pieces that rest on the floor cut (lowest point within ``touch`` of ``floor_y``) and stay low
     (highest point within ``band`` of it), the largest piece excepted.
