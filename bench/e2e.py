@@ -213,7 +213,7 @@ def run_garment(mesh_path: Path, args: argparse.Namespace, device: str) -> dict[
         "camera_error": cameras,
         "frames_registered": metrics.get("frames_registered"), "frames_total": metrics.get("frames_total"),
         "train": {k: stages["train"]["metrics"].get(k) for k in ("iters", "train_psnr", "stopped_by", "images",
-                                                                    "surface_points")},
+                                                                    "surface_points", "start")},
     }
 
 

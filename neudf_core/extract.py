@@ -115,6 +115,8 @@ def mesh_run(
             raise NothingSeenError(
                 f"no face is seen by {min_seen_fraction:.0%} of the {len(cameras)} cameras in {views}")
         unseen = faces_before - len(mesh.faces)
+        mesh = keep_in_sphere(mesh, SPHERE_RIM)  # culling can part a piece at the rim from the object
+        at_rim = faces_before - unseen - len(mesh.faces)
         # what culling opened, as extraction does: small holes, slits (and tears the field covers, where
         # fill_covered allows)
         mesh = fill_small_holes(mesh, info.get("fill_holes") or 0.0, field_perimeter=info.get("fill_covered") or 0.0,
@@ -123,7 +125,8 @@ def mesh_run(
                                 slit_perimeter=info.get("fill_slits") or 0.0, slit_width=info.get("slit_width") or 0.0)
         mesh.metadata["meshing"] = {**info, "views": str(views), "cameras": len(cameras),
                                     "min_seen_fraction": min_seen_fraction, "faces_unseen": unseen - lids,
-                                    "lid_spread": lid_spread, "faces_lids": lids}
+                                    "lid_spread": lid_spread, "faces_lids": lids,
+                                    "faces_outside": info.get("faces_outside", 0) + at_rim}
     color_vertices(mesh, model.color, device=device, progress=sub_progress(report, 0.9, 0.98))
     mesh = decimate(mesh, faces)
     if texture_size > 0:

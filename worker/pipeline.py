@@ -247,7 +247,8 @@ def _mesh(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
     except ValueError as exc:  # a method that does not fit the field, ...
         raise StageError("mesh", str(exc)) from exc
     info = mesh.metadata.get("meshing", {})
-    keys = ("method", "resolution", "threshold", "faces_unseen", "faces_lids", "faces_on_floor", "faces_floor_skirt")
+    keys = ("method", "resolution", "threshold", "faces_unseen", "faces_lids", "faces_on_floor", "faces_floor_skirt",
+            "faces_outside")
     return {f"mesh_{k}": info[k] for k in keys if k in info}
 
 
