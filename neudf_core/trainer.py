@@ -393,10 +393,14 @@ def train(
         surface_points = torch.from_numpy(kept) if len(kept) >= MIN_PRIOR_POINTS else None
     # a capture whose sparse points anchor nothing: the object is smooth or plain where the term relies on them
     unanchored = cfg.loss.point_surface_weight > 0 and captured is not None and surface_points is None
-    cfg = resolve_start(cfg, unanchored)
+    asked, cfg = cfg, resolve_start(cfg, unanchored)
     cfg_file = run_dir / "config.json"
     if cfg_file.is_file() and _checkpoints(run_dir):
         stored = load_saved_config(cfg_file.read_text())
+        if stored.field.init_radius is None and asked.field.init_radius is None:
+            # saved before the start was resolved from the capture: it started as the model then chose
+            # (a shell when signed, a point otherwise), and the run keeps that start
+            stored, cfg = resolve_start(stored, False), resolve_start(asked, False)
         if stored.model_dump(exclude=_SCHEDULE_FIELDS) != cfg.model_dump(exclude=_SCHEDULE_FIELDS):
             raise RunError(f"{run_dir} holds a run with another configuration (preset {stored.preset!r}); "
                            "pick a new --out folder or the same options to resume it")

@@ -366,6 +366,14 @@ def test_a_capture_without_anchors_starts_from_a_sphere(sheet_scene, tmp_path):
     assert starts == {"lone": ("sphere", 0.5, 0.3), "anchored": ("point", 0.0, 0.0), "none": ("point", 0.0, 0.0),
                       "named": ("point", 0.0, 0.0)}, starts
     load_model(tmp_path / "run_lone")  # the saved configuration rebuilds the model it trained
+    # a run saved before the start was resolved (init_radius null) resumes with the start it had: a point
+    saved = tmp_path / "run_lone" / "config.json"
+    cfg = json.loads(saved.read_text())
+    cfg["field"]["init_radius"], cfg["loss"]["zero_region_from"] = None, 0.0
+    saved.write_text(json.dumps(cfg))
+    resumed = train(tmp_path / "lone", tmp_path / "run_lone", preset="quick", iters=2, overrides={**base, "field": {}})
+    assert resumed["iters"] == 2 and resumed["start"] == "point"
+    assert json.loads(saved.read_text())["field"]["init_radius"] == 0.0
 
 
 def test_point_surface_term_pulls_the_field_to_zero_at_sparse_points(sheet_scene, tmp_path):
