@@ -41,8 +41,9 @@ def garment_of(job: Path) -> str:
     raise SystemExit(f"{job} is not a bench/e2e.py job folder (<garment>_<weight>...)")
 
 
-def section(model, to_job, y: float, gt_points: np.ndarray, scale: float) -> np.ndarray:
-    """One panel (SIDE x SIDE x 3, uint8): h over the plane at height y, GT's points within a hair of it."""
+def section(model, to_job, y: float, gt_points: np.ndarray, scale: float) -> tuple[np.ndarray, float]:
+    """One panel (SIDE x SIDE x 3, uint8): h over the plane at height y, GT's points within a hair of it;
+    and the lowest h on the plane (GT's units)."""
     u = np.linspace(-1.0, 1.0, SIDE)
     x, z = np.meshgrid(u, u)
     plane = np.stack([x.ravel(), np.full(x.size, y), z.ravel()], 1)
@@ -55,7 +56,7 @@ def section(model, to_job, y: float, gt_points: np.ndarray, scale: float) -> np.
     near = gt_points[np.abs(gt_points[:, 1] - y) < 0.004]
     cols, rows = [((near[:, k] + 1) / 2 * (SIDE - 1)).round().astype(int) for k in (0, 2)]
     image[rows, cols] = (0.0, 0.7, 0.0)
-    return (image * 255).astype(np.uint8)
+    return (image * 255).astype(np.uint8), float(h.min())
 
 
 def study(job: Path, heights: list[float]) -> dict:
@@ -78,7 +79,7 @@ def study(job: Path, heights: list[float]) -> dict:
     unit_gt.apply_translation(-centre)
     unit_gt.apply_scale(unit)
     dense, _ = trimesh.sample.sample_surface(unit_gt, 400_000, seed=0)
-    panels = [section(model, to_job, y, dense, s * unit) for y in heights]
+    panels, lowest = zip(*(section(model, to_job, y, dense, s * unit) for y in heights))
     picture = PICTURES / f"sections_{job.name}.png"
     Image.fromarray(np.concatenate(panels, 1)).save(picture)
 
@@ -89,7 +90,8 @@ def study(job: Path, heights: list[float]) -> dict:
         inside = (y >= lo) & (y <= hi)
         bands.append({"y": [round(float(lo), 3), round(float(hi), 3)],
                       "completeness": float(d[inside].mean()), "farther_than_0.05": float(np.mean(d[inside] > 0.05))})
-    return {"job": job.name, "heights": heights, "picture": str(picture.relative_to(ROOT)), "bands": bands}
+    return {"job": job.name, "heights": heights, "lowest_h": [round(v, 4) for v in lowest],
+            "picture": str(picture.relative_to(ROOT)), "bands": bands}
 
 
 def main() -> None:
@@ -106,11 +108,11 @@ def main() -> None:
         if not (job / "run" / "config.json").is_file() or not (job / "mesh" / "mesh.ply").is_file():
             raise SystemExit(f"{job} holds no trained and meshed job: run bench/e2e.py for it first")
         rows.append(study(job, args.heights))
-    print("| job | completeness x1e-3 by height band, low to high (share farther than 0.05) |")
-    print("|---|---|")
+    print("| job | completeness x1e-3 by height band, low to high (share farther than 0.05) | lowest h per section |")
+    print("|---|---|---|")
     for row in rows:
         cells = " / ".join(f"{b['completeness'] * 1e3:.1f} ({b['farther_than_0.05']:.2f})" for b in row["bands"])
-        print(f"| {row['job']} | {cells} |")
+        print(f"| {row['job']} | {cells} | {' / '.join(f'{v:.3f}' for v in row['lowest_h'])} |")
     previous = json.loads(args.out.read_text())["rows"] if args.out.is_file() else []
     rows = [r for r in previous if r["job"] not in {row["job"] for row in rows}] + rows
     args.out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d %H:%M:%S"), "rows": rows}, indent=2))
