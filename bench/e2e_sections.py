@@ -24,7 +24,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.e2e import MESH_DIR, PICTURES, RESULTS, aligned_mesh, camera_similarity, load_garment  # noqa: E402
+from bench.e2e import PICTURES, RESULTS, aligned_mesh, camera_similarity, garments, load_garment  # noqa: E402
 from neudf_core.metrics import directed_distances, unit_sphere_normalisation  # noqa: E402
 from neudf_core.trainer import load_model  # noqa: E402
 
@@ -59,13 +59,13 @@ def section(model, to_job, y: float, gt_points: np.ndarray, scale: float) -> tup
     return (image * 255).astype(np.uint8), float(h.min())
 
 
-def study(job: Path, heights: list[float]) -> dict:
+def study(job: Path, work: Path, heights: list[float]) -> dict:
     import trimesh
     from PIL import Image
 
     name = garment_of(job)
-    gt = load_garment(next(MESH_DIR.glob(name + ".*")))
-    true_c2w = np.load(job.parent.parent / "videos" / f"{name}_c2w.npy")
+    gt = load_garment(garments([name], work)[0])
+    true_c2w = np.load(work / "videos" / f"{name}_c2w.npy")
     pred, _ = aligned_mesh(job, true_c2w)
     _, gt_side, unit = directed_distances(pred, gt)
     centre, _ = unit_sphere_normalisation(gt)
@@ -107,7 +107,7 @@ def main() -> None:
         job = args.work / "jobs" / name
         if not (job / "run" / "config.json").is_file() or not (job / "mesh" / "mesh.ply").is_file():
             raise SystemExit(f"{job} holds no trained and meshed job: run bench/e2e.py for it first")
-        rows.append(study(job, args.heights))
+        rows.append(study(job, args.work, args.heights))
     print("| job | completeness x1e-3 by height band, low to high (share farther than 0.05) | lowest h per section |")
     print("|---|---|---|")
     for row in rows:
