@@ -146,8 +146,11 @@ def aligned_mesh(job: Path, true_c2w: np.ndarray, mesh: Any = None) -> tuple[Any
     mesh.vertices = s * np.asarray(mesh.vertices) @ R.T + t
     errors = pose_errors(est, truth)
     orbit = float(np.median(np.linalg.norm(truth[:, :3, 3], axis=1)))
+    Ks, _ = load_dataset_cameras(job / "data")  # undistorted frames at the video's size
+    true_f = synthetic.handheld_orbit(1, width=WIDTH, height=HEIGHT)[0].K[0, 0]
     return mesh, {"rotation_deg_median": round(float(np.median(errors["rotation_deg"])), 4),
-                  "centre_rms_of_orbit": round(float(np.sqrt(np.mean(errors["centre_err"] ** 2))) / orbit, 5)}
+                  "centre_rms_of_orbit": round(float(np.sqrt(np.mean(errors["centre_err"] ** 2))) / orbit, 5),
+                  "focal_error": round(float(np.median(Ks[:, 0, 0])) / true_f - 1.0, 4)}
 
 
 def picture(path: Path, gt, pred, size: int = 320) -> None:
@@ -213,7 +216,7 @@ def run_garment(mesh_path: Path, args: argparse.Namespace, device: str) -> dict[
         "camera_error": cameras,
         "frames_registered": metrics.get("frames_registered"), "frames_total": metrics.get("frames_total"),
         "train": {k: stages["train"]["metrics"].get(k) for k in ("iters", "train_psnr", "stopped_by", "images",
-                                                                    "surface_points", "start")},
+                                                                    "surface_points", "sight_points", "start")},
     }
 
 

@@ -127,6 +127,15 @@ class LossConfig(_Block):
         1.0, gt=0.0, le=1.0, description="the share of training over which that term fades linearly to 0: it "
         "places the surface early, and the colours alone shape it at the end (noisy points held to the end "
         "draw stacked sheets)")
+    point_sight_weight: float = Field(
+        0.0, ge=0.0, description="not in the paper (0 = off): keep the field's surface off the lines of sight from "
+        "the frames that saw an anchor to just short of it (DATA/object_point_views.npy), so an anchor is met by "
+        "the surface those frames see and not by a sheet hidden behind it; fades with point_surface_until")
+    point_sight_margin: float = Field(
+        0.01, gt=0.0, description="Psi below this on a line of sight is surface in the way (unit sphere)")
+    point_sight_gap: float = Field(
+        0.03, ge=0.0, description="how far short of the anchor a line of sight stops (the points' scatter)")
+    point_sight_samples: int = Field(32, ge=1, description="points drawn on each line of sight")
 
 
 class OptimConfig(_Block):

@@ -25,6 +25,9 @@ class DatasetError(ValueError):
 
 REGION_FILE = "region.json"  # optional: {"floor_y": height in the unit sphere (y up) below which lies no object}
 OBJECT_POINTS_FILE = "object_points.npy"  # optional: (M, 3) sparse points of the object, in the unit sphere
+# optional, with it: (M, VIEWS_PER_POINT) int indices of images that saw each point (the capture's tracks), -1 after
+OBJECT_POINT_VIEWS_FILE = "object_point_views.npy"
+VIEWS_PER_POINT = 8
 # Height over the floor cut (unit sphere) that still holds the floor's own points and the object's shadow:
 # beer.mp4's shadow spread 0.05 over its floor, and the floor's points scatter that far above its level.
 FLOOR_SHADOW_BAND = 0.1
@@ -258,6 +261,24 @@ def read_object_points(root: str | Path) -> np.ndarray | None:
     if points.ndim != 2 or points.shape[1] != 3:
         raise DatasetError(f"{path} holds an array of shape {points.shape}, not (M, 3) points")
     return points
+
+
+def read_object_point_views(root: str | Path, n_points: int, n_images: int) -> np.ndarray | None:
+    """The images that saw each sparse point (row for row with :func:`read_object_points`), or None when the
+    capture did not record them."""
+    path = Path(root) / OBJECT_POINT_VIEWS_FILE
+    if not path.is_file():
+        return None
+    try:
+        views = np.load(path)
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"cannot read {path}: {exc}") from exc
+    if views.ndim != 2 or len(views) != n_points or not np.issubdtype(views.dtype, np.integer):
+        raise DatasetError(f"{path} holds an array of shape {views.shape} ({views.dtype}), not integer views for "
+                           f"each of the {n_points} points in {OBJECT_POINTS_FILE}")
+    if views.size and (views.max() >= n_images or views.min() < -1):
+        raise DatasetError(f"{path} names images outside 0..{n_images - 1}")
+    return views
 
 
 def load_dataset(root: str | Path, max_size: int = 0, use_masks: bool = False, sphere_px: int = 0) -> Dataset:

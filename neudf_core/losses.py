@@ -49,6 +49,14 @@ def udf_at_points(psi: Tensor) -> Tensor:
     return psi.float().abs().mean()
 
 
+def surface_in_sight(psi: Tensor, valid: Tensor, margin: float) -> Tensor:
+    """Surface on the lines of sight to anchors (not in the paper): relu(margin - Psi) summed along each line
+    (B, n), averaged over the ``valid`` lines (B,). A frame that saw a sparse point saw nothing in front of
+    it; a UDF can meet the point with a sheet behind the one the frame sees, and this rules that out."""
+    along = torch.relu(margin - psi.float().abs()).sum(-1)
+    return (along * valid).sum() / valid.sum().clamp_min(1)
+
+
 def psnr(pred: Tensor, target: Tensor) -> float:
     mse = (pred.detach() - target).pow(2).mean().clamp_min(1e-10)
     return float(-10.0 * torch.log10(mse))

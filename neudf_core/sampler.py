@@ -41,6 +41,18 @@ def stratified(near: Tensor, far: Tensor, n: int, perturb: bool) -> Tensor:
     return near[:, None] + (far - near)[:, None] * u
 
 
+def sight_lines(targets: Tensor, centres: Tensor, gap: float, n: int) -> tuple[Tensor, Tensor]:
+    """n jittered points (B, n, 3) on each line of sight from a camera centre to ``gap`` short of the point it
+    saw, within the unit sphere; and which lines (B,) have such a stretch."""
+    offset = targets - centres
+    length = offset.norm(dim=-1).clamp_min(1e-9)
+    dirs = offset / length[:, None]
+    near, _ = near_far_from_sphere(centres, dirs)
+    far = length - gap
+    depths = stratified(near, torch.maximum(far, near), n, perturb=True)
+    return centres[:, None] + dirs[:, None] * depths[..., None], far > near
+
+
 def outside_samples(far: Tensor, n: int, perturb: bool) -> Tensor:
     """n depths beyond ``far`` spread evenly in inverse depth up to near-infinity (NeRF++)."""
     u = torch.linspace(1e-3, 1.0 - 1.0 / (n + 1), n, device=far.device).expand(far.shape[0], n)

@@ -19,11 +19,13 @@ from PIL import Image
 
 from neudf_core import losses
 from neudf_core.config import RendererConfig, TrainConfig, default_preset, load_config, load_saved_config
-from neudf_core.dataset import FLOOR_SHADOW_BAND, Dataset, load_dataset, read_floor, read_object_points
+from neudf_core.dataset import (FLOOR_SHADOW_BAND, Dataset, image_paths, load_dataset, read_floor,
+                                read_object_point_views, read_object_points)
 from neudf_core.files import atomic_write
 from neudf_core.model import NeUDFModel, RenderState
 from neudf_core.numerics import flush_denormals
 from neudf_core.progress import ProgressFn, null_progress
+from neudf_core.sampler import sight_lines
 
 log = logging.getLogger(__name__)
 
@@ -121,10 +123,12 @@ def load_model(run_dir: str | Path, device: str = "cpu") -> NeUDFModel:
 
 class Trainer:
     def __init__(self, data: Dataset, run_dir: Path, cfg: TrainConfig, device: str,
-                 surface_points: torch.Tensor | None = None):
+                 surface_points: torch.Tensor | None = None, surface_views: torch.Tensor | None = None):
         self.data, self.run_dir, self.cfg, self.device = data.to(device), run_dir, cfg, device
         # the object's sparse points, where the point-surface term pulls Psi to 0 (None: the term is off)
         self.surface_points = surface_points.float().to(device) if surface_points is not None else None
+        # row for row, images that saw each of them, -1 after (None: the line-of-sight term is off)
+        self.surface_views = surface_views.to(device) if surface_views is not None else None
         torch.manual_seed(cfg.seed)
         self.model = NeUDFModel(cfg).to(device)
         self.optimizer = torch.optim.Adam(self._param_groups(), lr=cfg.optim.lr)
@@ -206,6 +210,8 @@ class Trainer:
         fade = point_surface_scale(self.step, cfg.loss.point_surface_until, self.total)
         if self.surface_points is not None and fade > 0:
             loss = loss + fade * cfg.loss.point_surface_weight * losses.udf_at_points(self._udf_at_sparse_points())
+        if self.surface_views is not None and fade > 0:
+            loss = loss + fade * cfg.loss.point_sight_weight * self._surface_in_sight()
         zero_region_on = self.step >= cfg.loss.zero_region_from * self.total
         if cfg.loss.zero_region_weight > 0 and not self.model.signed and zero_region_on:
             loss = loss + cfg.loss.zero_region_weight * losses.zero_region(
@@ -221,6 +227,19 @@ class Trainer:
     def _udf_at_sparse_points(self) -> torch.Tensor:
         pick = torch.randint(len(self.surface_points), (self.cfg.loss.point_surface_batch,), generator=self.generator)
         return self.model.udf(self.surface_points[pick.to(self.device)])
+
+    def _surface_in_sight(self) -> torch.Tensor:
+        """The line-of-sight term at a batch of anchors, each seen from one of the images that saw it."""
+        cfg = self.cfg.loss
+        pick = torch.randint(len(self.surface_points), (cfg.point_surface_batch,), generator=self.generator)
+        views = self.surface_views[pick.to(self.device)]
+        seen = (views >= 0).sum(1)  # the views come first in each row, -1 after
+        column = (torch.rand(len(pick), generator=self.generator).to(self.device) * seen).long().clamp_max(seen - 1)
+        view = views.gather(1, column[:, None].clamp_min(0)).squeeze(1)
+        points, valid = sight_lines(self.surface_points[pick.to(self.device)], self.data.c2w[view, :3, 3],
+                                    cfg.point_sight_gap, cfg.point_sight_samples)
+        psi = self.model.udf(points.reshape(-1, 3)).reshape(points.shape[:2])
+        return losses.surface_in_sight(psi, valid & (seen > 0), cfg.point_sight_margin)
 
     @staticmethod
     def _relaxed_sphere(batch: dict, out: dict) -> torch.Tensor:
@@ -314,18 +333,29 @@ class Trainer:
                 "iters_per_s": round((self.step - start_step) / max(session_s, 1e-9), 3)}
 
 
-def surface_anchor_points(points: np.ndarray, floor_y: float | None) -> np.ndarray:
-    """The sparse points the point-surface term may pull the surface onto. Left out: those just above the
-    floor cut (the floor's texture and the shadow: they draw a sheet of floor) and those with fewer than
-    ANCHOR_NEIGHBOURS others within ANCHOR_RADIUS (a point of a textured object has neighbours; the floor's
-    scatter and strays stand alone, and a lone point would grow a speck of surface)."""
-    if floor_y is not None:
-        points = points[points[:, 1] > floor_y + FLOOR_SHADOW_BAND]
-    every = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
+def surface_anchors(points: np.ndarray, floor_y: float | None) -> np.ndarray:
+    """Which sparse points (a boolean mask) the point-surface term may pull the surface onto. Left out: those
+    just above the floor cut (the floor's texture and the shadow: they draw a sheet of floor) and those with
+    fewer than ANCHOR_NEIGHBOURS others within ANCHOR_RADIUS (a point of a textured object has neighbours;
+    the floor's scatter and strays stand alone, and a lone point would grow a speck of surface)."""
+    above = points[:, 1] > floor_y + FLOOR_SHADOW_BAND if floor_y is not None else np.ones(len(points), bool)
+    every = torch.from_numpy(np.ascontiguousarray(points[above], dtype=np.float32))
     # counted in blocks of rows: a capture's few thousand points, without an N x N matrix at once
     others = torch.cat([(torch.cdist(block, every) <= ANCHOR_RADIUS).sum(1) - 1 for block in every.split(1024)]
                        ) if len(every) else torch.zeros(0, dtype=torch.long)
-    return points[(others >= ANCHOR_NEIGHBOURS).numpy()]
+    keep = above.copy()
+    keep[above] = (others >= ANCHOR_NEIGHBOURS).numpy()
+    return keep
+
+
+def anchor_views(data_dir: Path, points: np.ndarray, kept: np.ndarray) -> torch.Tensor | None:
+    """The images that saw each anchor (rows of ``points[kept]``), or None when the capture did not record
+    them or none of the anchors has one."""
+    data_dir = Path(data_dir)
+    views = read_object_point_views(data_dir, len(points), len(image_paths(data_dir)))
+    if views is None or not (views[kept, 0] >= 0).any():
+        return None
+    return torch.from_numpy(views[kept].astype(np.int64))
 
 
 def resolve_start(cfg: TrainConfig, unanchored: bool) -> TrainConfig:
@@ -387,10 +417,12 @@ def train(
     uses_points = cfg.loss.point_prior_weight > 0 or cfg.loss.point_surface_weight > 0
     captured = read_object_points(data_dir) if uses_points else None
     points = captured if captured is not None and len(captured) >= MIN_PRIOR_POINTS else None
-    surface_points = None
+    surface_points = surface_views = None
     if points is not None and cfg.loss.point_surface_weight > 0:
-        kept = surface_anchor_points(points, cfg.data.floor_y)
-        surface_points = torch.from_numpy(kept) if len(kept) >= MIN_PRIOR_POINTS else None
+        kept = surface_anchors(points, cfg.data.floor_y)
+        surface_points = torch.from_numpy(points[kept]) if kept.sum() >= MIN_PRIOR_POINTS else None
+        if surface_points is not None and cfg.loss.point_sight_weight > 0:
+            surface_views = anchor_views(data_dir, points, kept)
     # a capture whose sparse points anchor nothing: the object is smooth or plain where the term relies on them
     unanchored = cfg.loss.point_surface_weight > 0 and captured is not None and surface_points is None
     asked, cfg = cfg, resolve_start(cfg, unanchored)
@@ -411,13 +443,15 @@ def train(
         data.find_near_points(torch.from_numpy(points), cfg.loss.point_prior_radius)
     run_dir.mkdir(parents=True, exist_ok=True)
     cfg_file.write_text(cfg.model_dump_json(indent=2))
-    trainer = Trainer(data, run_dir, cfg, device, surface_points)
+    trainer = Trainer(data, run_dir, cfg, device, surface_points, surface_views)
     trainer.resume()
     result = trainer.fit(progress, budget_s=minutes * 60 if minutes is not None else None)
     result.update(preset=cfg.preset, device=device, images=data.n_images, image_size=[data.width, data.height],
                   start="point" if cfg.field.init_radius == 0 else "sphere")
     if cfg.loss.point_surface_weight > 0:  # 0: the term was on in the options but had nothing to hold
         result["surface_points"] = 0 if surface_points is None else len(surface_points)
+    if cfg.loss.point_sight_weight > 0:  # anchors whose lines of sight were kept clear
+        result["sight_points"] = 0 if surface_views is None else int((surface_views[:, 0] >= 0).sum())
     if minutes is not None:
         result["minutes"] = minutes
     return result

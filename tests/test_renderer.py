@@ -245,3 +245,31 @@ def test_zero_region_penalty_lifts_a_saturated_field_and_spares_a_surface():
     (grad,) = torch.autograd.grad(loss, h)
     assert torch.allclose(grad[:2], torch.full((2,), -0.2), atol=1e-6)  # pushes h up with full strength
     assert torch.all(grad[2:] == 0)  # a surface crossing (h > -margin) and the field away from it are left alone
+
+
+def test_a_sheet_in_front_of_a_seen_point_is_in_its_line_of_sight_and_the_point_itself_is_not():
+    """Psi = |z| (a sheet at z = 0). Seen from a camera at z = 2, a point behind the sheet (z = -0.3) has the
+    sheet on its line of sight; a point on the sheet has nothing in front of it, and the line stops ``gap``
+    short of it, so the sheet it lies on is not counted."""
+    from neudf_core.losses import surface_in_sight
+    from neudf_core.sampler import sight_lines
+
+    torch.manual_seed(0)
+    camera = torch.tensor([[0.0, 0.0, 2.0]]).expand(2, 3)
+    points = torch.tensor([[0.1, 0.0, -0.3], [0.1, 0.0, 0.0]])
+    lines, valid = sight_lines(points, camera, gap=0.03, n=400)
+    assert valid.all()
+    radius = lines.norm(dim=-1)
+    assert radius.max() <= 1.0 + 1e-5  # only within the unit sphere, where the field is trained
+    depth = (lines - camera[:, None]).norm(dim=-1)
+    assert torch.all(depth <= (points - camera).norm(dim=-1)[:, None] - 0.03 + 1e-5)
+    psi = lines[..., 2].abs().requires_grad_(True)
+    per_line = torch.relu(0.01 - psi).sum(-1)
+    assert per_line[0] > 0 and per_line[1] == 0
+    loss = surface_in_sight(psi, valid, margin=0.01)
+    assert float(loss.detach()) == pytest.approx(float(per_line.sum()) / 2)
+    (grad,) = torch.autograd.grad(loss, psi)
+    assert grad[0].min() < 0 and torch.all(grad[1] == 0)  # it lifts Psi where the sheet is in the way
+    # A point closer to the camera than the sphere's edge plus the gap has no stretch to check.
+    _, none = sight_lines(torch.tensor([[0.0, 0.0, 1.01]]), camera[:1], gap=0.03, n=8)
+    assert not none.any()

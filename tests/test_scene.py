@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from neudf_core import synthetic
+from neudf_core.dataset import VIEWS_PER_POINT
 from tests.builders import encode_video, textured_sheet
 from worker.capture.evaluate import align_cameras, load_dataset_cameras, pose_errors
 from worker.capture.poses import PoseOptions
@@ -63,6 +64,19 @@ def test_object_region_leaves_a_textured_floor_out(tmp_path):
     assert len(points) >= 50 and np.linalg.norm(points, axis=1).max() < 1.0 and points[:, 1].min() > floor_y
     gap, _ = cKDTree(sheet).query(points)
     assert np.mean(gap < 0.05) > 0.8
+
+    # Row for row, frames that saw each point (its track): the point lies in front of each and in its frame.
+    views = np.load(data / "object_point_views.npy")
+    assert views.shape == (len(points), VIEWS_PER_POINT) and (views[:, :3] >= 0).all()
+    K, _ = load_dataset_cameras(data)
+    rows, cols = np.nonzero(views >= 0)
+    w2c = np.linalg.inv(c2w[views[rows, cols]])
+    in_cam = np.einsum("nij,nj->ni", w2c[:, :3, :3], points[rows]) + w2c[:, :3, 3]
+    pixels = np.einsum("nij,nj->ni", K[views[rows, cols]], in_cam)
+    pixels = pixels[:, :2] / pixels[:, 2:]
+    width, height = scene["image_size"]
+    assert (in_cam[:, 2] > 0).all()
+    assert np.mean((pixels >= 0).all(1) & (pixels[:, 0] < width) & (pixels[:, 1] < height)) > 0.99
 
 
 def test_axes_point_and_upright_rotation():

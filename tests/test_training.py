@@ -14,7 +14,7 @@ from neudf_core.config import RETIRED, load_config, load_saved_config
 from neudf_core.dataset import DatasetError, load_dataset
 from neudf_core.model import RenderState
 from neudf_core.trainer import (RunError, learning_rate, load_model, point_surface_scale,
-                               sharpness_floor, surface_anchor_points, train)
+                               sharpness_floor, surface_anchors, train)
 
 
 @pytest.fixture(scope="module")
@@ -350,7 +350,7 @@ def test_a_capture_without_anchors_starts_from_a_sphere(sheet_scene, tmp_path):
 
     vertices = np.asarray(trimesh.load(sheet_scene / "mesh_gt.ply").vertices, dtype=np.float32)
     lone = np.stack(np.meshgrid(*[np.linspace(-0.6, 0.6, 5)] * 3), -1).reshape(-1, 3).astype(np.float32)
-    assert len(surface_anchor_points(lone, None)) == 0 and len(lone) >= 50
+    assert surface_anchors(lone, None).sum() == 0 and len(lone) >= 50
     base = {"data": {"white_background": True}, "optim": {"rays": 32},
             "sampler": {"n_coarse": 8, "n_importance": 8}}
     starts = {}
@@ -395,7 +395,7 @@ def test_point_surface_term_pulls_the_field_to_zero_at_sparse_points(sheet_scene
         run = tmp_path / f"run_{weight}"
         loss = {"point_surface_weight": weight, "point_surface_until": 1.0}
         result = train(data_dir, run, preset="quick", iters=60, overrides={**base, "loss": loss})
-        anchors = len(surface_anchor_points(vertices[::2], None))  # the sheet's rim has fewer neighbours
+        anchors = int(surface_anchors(vertices[::2], None).sum())  # the sheet's rim has fewer neighbours
         assert result.get("surface_points") == (None if weight == 0 else anchors) and anchors > 0.8 * len(
             vertices[::2]), result
         model = load_model(run)
@@ -404,6 +404,48 @@ def test_point_surface_term_pulls_the_field_to_zero_at_sparse_points(sheet_scene
             elsewhere[weight] = float(model.udf(torch.from_numpy(vertices[1::2])).abs().mean())
     assert at_points[1.0] < 0.5 * at_points[0.0], at_points
     assert elsewhere[1.0] < 0.5 * elsewhere[0.0], elsewhere
+
+
+def test_line_of_sight_term_clears_surface_off_the_lines_to_seen_points(sheet_scene, tmp_path):
+    """Each anchor with the images that saw it (DATA/object_point_views.npy, here every camera): after the
+    same short training, the field has less surface on the lines from those cameras to the anchors with
+    the line-of-sight term than without it. The views are read row for row with the anchors, and a file
+    that does not match the points is refused with its name."""
+    import shutil
+
+    import trimesh
+
+    from neudf_core.losses import surface_in_sight
+    from neudf_core.sampler import sight_lines
+    from neudf_core.trainer import load_model
+
+    data_dir = tmp_path / "data"
+    shutil.copytree(sheet_scene, data_dir)
+    anchors = np.asarray(trimesh.load(sheet_scene / "mesh_gt.ply").vertices, dtype=np.float32)[::2]
+    np.save(data_dir / "object_points.npy", anchors)
+    n_images = len(list((data_dir / "image").glob("*.png")))
+    views = np.stack([np.random.default_rng(i).permutation(n_images)[:8] for i in range(len(anchors))])
+    np.save(data_dir / "object_point_views.npy", views.astype(np.int32))
+    base = {"data": {"white_background": True}, "optim": {"rays": 64},
+            "sampler": {"n_coarse": 16, "n_importance": 16}}
+    c2w = load_dataset(data_dir).c2w
+    lines, valid = sight_lines(torch.from_numpy(anchors).repeat_interleave(8, 0),
+                               c2w[torch.from_numpy(views.reshape(-1)).long(), :3, 3], gap=0.03, n=64)
+    in_sight = {}
+    for weight in (0.0, 10.0):
+        run = tmp_path / f"run_{weight}"
+        loss = {"point_surface_weight": 1.0, "point_surface_until": 1.0, "point_sight_weight": weight}
+        result = train(data_dir, run, preset="quick", iters=60, overrides={**base, "loss": loss})
+        assert result.get("sight_points") == (None if weight == 0 else result["surface_points"]), result
+        with torch.no_grad():
+            psi = load_model(run).udf(lines.reshape(-1, 3)).reshape(lines.shape[:2])
+        in_sight[weight] = float(surface_in_sight(psi, valid, 0.01))
+    assert in_sight[10.0] < 0.5 * in_sight[0.0], in_sight
+
+    np.save(data_dir / "object_point_views.npy", views[:-1].astype(np.int32))
+    with pytest.raises(DatasetError, match="object_point_views.npy"):
+        train(data_dir, tmp_path / "run_bad", preset="quick", iters=2,
+              overrides={**base, "loss": {"point_surface_weight": 1.0, "point_sight_weight": 1.0}})
 
 
 def test_point_surface_term_fades_to_nothing_at_its_share_of_training():
@@ -423,6 +465,6 @@ def test_point_surface_term_anchors_on_clusters_of_points_off_the_floor():
     low_cluster = cloth * [1, 0.05, 1] + [0, -0.76, 0]   # dense, but within the band over the floor at -0.8
     strays = np.array([[0.8, 0.5, 0.1], [-0.7, -0.2, 0.5], [0.0, 0.6, -0.8]])
     points = np.concatenate([cloth, low_cluster, strays]).astype(np.float32)
-    kept = surface_anchor_points(points, -0.8)
+    kept = points[surface_anchors(points, -0.8)]
     assert len(kept) == len(cloth) and np.allclose(kept, cloth.astype(np.float32))
-    assert len(surface_anchor_points(points, None)) == 2 * len(cloth)
+    assert surface_anchors(points, None).sum() == 2 * len(cloth)

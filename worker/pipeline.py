@@ -212,7 +212,7 @@ def _train(ctx: JobContext, progress: ProgressFn) -> dict[str, Any]:
     result = train(ctx.data_dir, ctx.run_dir, preset=ctx.preset, iters=ctx.options.iters, minutes=minutes,
                    device=ctx.device, progress=progress, overrides=overrides)
     keep = ("iters", "psnr", "loss", "iters_per_s", "images", "preset", "device", "stopped_by", "minutes", "train_s",
-            "surface_points", "start")
+            "surface_points", "sight_points", "start")
     return {f"train_{k}" if k in ("loss", "psnr") else k: result[k] for k in keep if result.get(k) is not None}
 
 

@@ -20,8 +20,9 @@ Writes, for the registered frames only and in their order: DATA/image/*.png (ren
 DATA/frames.json (kept consistent with image/), DATA/cameras_sphere.npz (``world_mat_i`` = K [R | t] 4x4
 from the upright world to pixels, ``scale_mat_i`` 4x4 from the unit sphere to that world) and
 DATA/cameras.png, a picture of the camera path and sparse points for the web page; besides them
-DATA/region.json (the floor) and DATA/object_points.npy (the sparse points inside the unit sphere and above
-the floor, for training's optional point prior). Pixel centres sit at integer + 0.5 (COLMAP's
+DATA/region.json (the floor), DATA/object_points.npy (the sparse points inside the unit sphere and above
+the floor, for training's optional point prior) and DATA/object_point_views.npy (for each of them, frames
+that saw it). Pixel centres sit at integer + 0.5 (COLMAP's
 and the synthetic renderer's convention). Figures go into ``capture.json`` under ``scene``, written last.
 """
 
@@ -37,7 +38,7 @@ import numpy as np
 import pycolmap
 from pydantic import BaseModel, ConfigDict, Field
 
-from neudf_core.dataset import OBJECT_POINTS_FILE, REGION_FILE
+from neudf_core.dataset import OBJECT_POINT_VIEWS_FILE, OBJECT_POINTS_FILE, REGION_FILE, VIEWS_PER_POINT
 from neudf_core.files import atomic_write, link_or_copy, write_json_atomic
 from neudf_core.progress import ProgressFn, null_progress
 from worker.capture.poses import colmap_dir, undistorted_dir
@@ -85,6 +86,7 @@ class SceneCameras(BaseModel):
     t: np.ndarray  # (N, 3)
     points: np.ndarray  # (M, 3) sparse points (filtered)
     colors: np.ndarray  # (M, 3) uint8
+    views: np.ndarray  # (M, VIEWS_PER_POINT) int32: indices (into names) of frames that saw each point, -1 after
 
     @property
     def centers(self) -> np.ndarray:
@@ -117,12 +119,21 @@ def load_model(model_dir: str | Path, max_point_error_px: float = 2.0, min_track
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     R = np.stack([im.cam_from_world().rotation.matrix() for im in images])
     t = np.stack([np.asarray(im.cam_from_world().translation) for im in images])
-    pts = [(p.xyz, p.color) for p in rec.points3D.values() if p.error <= max_point_error_px
-           and p.track.length() >= min_track_length]
-    points = np.array([p for p, _ in pts]).reshape(-1, 3)
-    colors = np.array([c for _, c in pts], dtype=np.uint8).reshape(-1, 3)
+    index = {im.image_id: i for i, im in enumerate(images)}
+    kept = [p for p in rec.points3D.values() if p.error <= max_point_error_px
+            and p.track.length() >= min_track_length]
+    points = np.array([p.xyz for p in kept]).reshape(-1, 3)
+    colors = np.array([p.color for p in kept], dtype=np.uint8).reshape(-1, 3)
+    views = np.stack([_track_views(p.track, index) for p in kept]) if kept else np.zeros((0, VIEWS_PER_POINT), np.int32)
     return SceneCameras(names=[im.name for im in images], K=K, width=cam.width, height=cam.height, R=R, t=t,
-                        points=points, colors=colors)
+                        points=points, colors=colors, views=views)
+
+
+def _track_views(track: Any, index: dict[int, int]) -> np.ndarray:
+    """Up to VIEWS_PER_POINT frames of a point's track, spread over it (first to last), -1 after."""
+    seen = sorted({index[e.image_id] for e in track.elements if e.image_id in index})
+    picked = [seen[i] for i in np.linspace(0, len(seen) - 1, min(len(seen), VIEWS_PER_POINT)).round().astype(int)]
+    return np.array(picked + [-1] * (VIEWS_PER_POINT - len(picked)), dtype=np.int32)
 
 
 def axes_point(centers: np.ndarray, axes: np.ndarray, iterations: int = 5) -> np.ndarray:
@@ -414,7 +425,7 @@ def write_scene(
     floor_unit = None if floor is None or floor / sphere_radius <= -1.0 else round(float(floor / sphere_radius), 4)
     write_json_atomic(data_dir / REGION_FILE, {"floor_y": floor_unit})
     scene["floor_y_unit"] = floor_unit
-    scene["object_points_inside"] = _write_object_points(data_dir, unit_points, floor_unit)
+    scene["object_points_inside"] = _write_object_points(data_dir, unit_points, cams.views, floor_unit)
     under = floor is not None and floor_unit is None
     scene["floor_search"] = floor_search + (", under the unit sphere" if under else "")
     if warnings:
@@ -426,12 +437,14 @@ def write_scene(
     return {**scene, "seconds": round(seconds, 3)}
 
 
-def _write_object_points(data_dir: Path, unit_points: np.ndarray, floor_y: float | None) -> int:
+def _write_object_points(data_dir: Path, unit_points: np.ndarray, views: np.ndarray, floor_y: float | None) -> int:
     """DATA/object_points.npy: the sparse points inside the unit sphere and above the floor, where training
-    looks for the object. Returns how many."""
+    looks for the object; DATA/object_point_views.npy, row for row, the frames that saw them. Returns how many."""
     keep = np.linalg.norm(unit_points, axis=1) < 1.0
     if floor_y is not None:
         keep &= unit_points[:, 1] > floor_y
+    with atomic_write(data_dir / OBJECT_POINT_VIEWS_FILE) as tmp:
+        np.save(tmp, views[keep])
     with atomic_write(data_dir / OBJECT_POINTS_FILE) as tmp:
         np.save(tmp, unit_points[keep].astype(np.float32))
     return int(keep.sum())
