@@ -267,7 +267,7 @@ def test_a_sheet_in_front_of_a_seen_point_is_in_its_line_of_sight_and_the_point_
     per_line = torch.relu(0.01 - psi).sum(-1)
     assert per_line[0] > 0 and per_line[1] == 0
     loss = surface_in_sight(psi, valid, margin=0.01)
-    assert float(loss.detach()) == pytest.approx(float(per_line.sum()) / 2)
+    assert float(loss.detach()) == pytest.approx(float(per_line.detach().sum()) / 2)
     (grad,) = torch.autograd.grad(loss, psi)
     assert grad[0].min() < 0 and torch.all(grad[1] == 0)  # it lifts Psi where the sheet is in the way
     # A point closer to the camera than the sphere's edge plus the gap has no stretch to check.
