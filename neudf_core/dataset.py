@@ -250,15 +250,20 @@ def read_floor(root: str | Path) -> float | None:
     return None if value is None else float(value)
 
 
-def read_object_points(root: str | Path) -> np.ndarray | None:
-    path = Path(root) / OBJECT_POINTS_FILE
+def _optional_array(path: Path) -> np.ndarray | None:
+    """An optional .npy file of a dataset folder: None when absent, a DatasetError when unreadable."""
     if not path.is_file():
         return None
     try:
-        points = np.load(path)
+        return np.load(path)
     except (OSError, ValueError) as exc:
         raise DatasetError(f"cannot read {path}: {exc}") from exc
-    if points.ndim != 2 or points.shape[1] != 3:
+
+
+def read_object_points(root: str | Path) -> np.ndarray | None:
+    path = Path(root) / OBJECT_POINTS_FILE
+    points = _optional_array(path)
+    if points is not None and (points.ndim != 2 or points.shape[1] != 3):
         raise DatasetError(f"{path} holds an array of shape {points.shape}, not (M, 3) points")
     return points
 
@@ -267,12 +272,9 @@ def read_object_point_views(root: str | Path, n_points: int, n_images: int) -> n
     """The images that saw each sparse point (row for row with :func:`read_object_points`), or None when the
     capture did not record them."""
     path = Path(root) / OBJECT_POINT_VIEWS_FILE
-    if not path.is_file():
+    views = _optional_array(path)
+    if views is None:
         return None
-    try:
-        views = np.load(path)
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"cannot read {path}: {exc}") from exc
     if views.ndim != 2 or len(views) != n_points or not np.issubdtype(views.dtype, np.integer):
         raise DatasetError(f"{path} holds an array of shape {views.shape} ({views.dtype}), not integer views for "
                            f"each of the {n_points} points in {OBJECT_POINTS_FILE}")
