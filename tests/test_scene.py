@@ -16,7 +16,8 @@ from tests.builders import encode_video, textured_sheet
 from worker.capture.evaluate import align_cameras, load_dataset_cameras, pose_errors
 from worker.capture.poses import PoseOptions
 from worker.capture.run import run_capture
-from worker.capture.scene import axes_point, floor_height, up_direction, upright_rotation
+from worker.capture.scene import (SceneCameras, SceneOptions, _object_sphere, axes_point, floor_height, up_direction,
+                                  upright_rotation)
 
 
 @pytest.mark.slow
@@ -130,3 +131,34 @@ def test_floor_under_an_object_rich_in_features_is_found_and_a_rim_is_not():
     assert level is not None and abs(level - (-0.55 + band)) < band, found
     without = heights[: n_can + 400], spread[: n_can + 400]
     assert floor_height(*without, band, 20)[0] is None
+
+
+def test_a_flat_objects_own_level_is_not_a_floor_unless_the_level_goes_on_past_it():
+    """A wavy sheet floating in a room gives its sparse points in a few levels, the lowest one dense and as wide
+    as the sheet: within the column under the object it looks like a floor. A floor goes on past that column
+    (cameras see it behind the object); the sheet's level stops at its edge."""
+    rng = np.random.default_rng(2)
+    c2w = np.stack([c.c2w for c in synthetic.orbit_cameras(24, radius=3.0)])
+    R = np.transpose(c2w[:, :3, :3], (0, 2, 1))
+    t = -np.einsum("nij,nj->ni", R, c2w[:, :3, 3])
+
+    def cylinder(n, h, r_lo, r_hi):  # points at heights h, spread uniformly over the ring r_lo..r_hi
+        angle, r = rng.uniform(0, 2 * np.pi, n), np.sqrt(rng.uniform(r_lo ** 2, r_hi ** 2, n))
+        return np.stack([r * np.cos(angle), h, r * np.sin(angle)], -1)
+
+    above = cylinder(200, rng.uniform(-0.05, 0.5, 200), 0.0, 0.3)
+    level = cylinder(300, rng.normal(-0.3, 0.003, 300), 0.0, 0.6)
+    onward = cylinder(200, rng.normal(-0.3, 0.003, 200), 1.6, 2.9)  # inside the cameras' ring (radius 3)
+
+    def floor_of(points):  # the floor's height in the world (None: no floor) and what the search found
+        cams = SceneCameras(names=[f"{i}" for i in range(len(R))], K=np.eye(3), width=100, height=100, R=R, t=t,
+                            points=points, colors=np.zeros((len(points), 3), np.uint8),
+                            views=np.zeros((len(points), VIEWS_PER_POINT), np.int32))
+        centre, _, _, floor, found, _ = _object_sphere(cams, SceneOptions(), np.array([0.0, 1.0, 0.0]))
+        return (None if floor is None else floor + centre[1]), found
+
+    floor, found = floor_of(np.concatenate([above, level]))
+    assert floor is None and "0 continuing it past the column" in found, found
+    floor, found = floor_of(np.concatenate([above, level, onward]))
+    band = SceneOptions().floor_band * 3.0
+    assert floor is not None and abs(floor - (-0.3 + band)) < band, found

@@ -6,9 +6,10 @@ From the pinhole model of the poses stage:
    so a few frames aimed elsewhere do not pull it). The sparse points near that point (closer than
    ``near_fraction`` of the median camera distance) are the object and its immediate surroundings; the
    middle of their robust bounding box refines the centre and their spread gives the object's radius.
-   A floor under the object (a dense level of points below it, spreading wider than the object) is left
-   out of both, and its height goes into DATA/region.json: training leaves what lies under it to the
-   background model, so neither the floor nor the object's shadow on it becomes surface.
+   A floor under the object (a dense level of points below it, spreading wider than the object and going
+   on past the column under it) is left out of both, and its height goes into DATA/region.json: training
+   leaves what lies under it to the background model, so neither the floor nor the object's shadow on it
+   becomes surface.
 2. The world is turned upright, so the mesh comes out upright (y up, as glTF expects): people hold a
    phone level while tilting it, so "up" is the direction perpendicular to all cameras' right vectors, on
    the side of their mean up vector; +z points towards the first frame.
@@ -249,8 +250,14 @@ def _object_sphere(cams: SceneCameras, opts: SceneOptions, up: np.ndarray
     # The floor is looked for in the column under the object, deeper than the near ball reaches: a ball clips a
     # floor at its edge to a small disc, which looks like the object's own bottom.
     column = (spread < reach) & (heights < reach) & (heights > -2 * reach)
-    floor, floor_search = floor_height(heights[column], spread[column], opts.floor_band * distance,
-                                       opts.min_object_points)
+    band = opts.floor_band * distance
+    floor, floor_search = floor_height(heights[column], spread[column], band, opts.min_object_points)
+    if floor is not None:
+        # A floor goes on past the object's column; a flat object's own level (a sheet, a leaf) stops with it.
+        onward = (np.abs(heights - (floor - band)) < band) & (spread >= reach) & (spread < 2 * reach)
+        floor_search += f", {int(onward.sum())} continuing it past the column"
+        if onward.sum() < opts.min_object_points:
+            floor = None
     if floor is not None:
         near_mask &= heights > floor
     near = cams.points[near_mask]
