@@ -132,7 +132,9 @@ class LossConfig(_Block):
         "the frames that saw an anchor to just short of it (DATA/object_point_views.npy), so an anchor is met by "
         "the surface those frames see and not by a sheet hidden behind it; fades with point_surface_until")
     point_sight_margin: float = Field(
-        0.01, gt=0.0, description="Psi below this on a line of sight is surface in the way (unit sphere)")
+        0.01, gt=0.0, description="Psi below this on a line of sight is surface in the way (unit sphere); a "
+        "frame whose line would pass real cloth that close (the anchor's own, seen obliquely, or other anchors) "
+        "is not used for that anchor")
     point_sight_gap: float = Field(
         0.03, ge=0.0, description="how far short of the anchor a line of sight stops (the points' scatter)")
     point_sight_samples: int = Field(32, ge=1, description="points drawn on each line of sight")

@@ -358,6 +358,48 @@ def anchor_views(data_dir: Path, points: np.ndarray, kept: np.ndarray) -> torch.
     return torch.from_numpy(views[kept].astype(np.int64))
 
 
+def anchor_normals(points: torch.Tensor, radius: float = ANCHOR_RADIUS) -> torch.Tensor:
+    """Unit normals (N, 3) of the anchors: the plane through each one's neighbours within ``radius`` (zeros
+    where fewer than three points give no plane)."""
+    normals = []
+    for block in points.split(1024):
+        near = (torch.cdist(block, points) <= radius).to(points.dtype)
+        count = near.sum(1)
+        mean = near @ points / count[:, None]
+        second = torch.einsum("bn,ni,nj->bij", near, points, points) / count[:, None, None]
+        _, vectors = torch.linalg.eigh(second - mean[:, :, None] * mean[:, None, :])
+        normals.append(torch.where((count >= 3)[:, None], vectors[:, :, 0], torch.zeros_like(mean)))
+    return torch.cat(normals) if normals else torch.zeros_like(points)
+
+
+def clear_sight_views(points: torch.Tensor, views: torch.Tensor, centres: torch.Tensor, margin: float, gap: float
+                      ) -> torch.Tensor:
+    """``views`` (N, V; -1 padded) without the frames whose line of sight to the anchor would hold real
+    cloth within ``margin``: where the line meets the anchor's own surface so obliquely that its end, ``gap``
+    short of the anchor, lies within 1.5 margins of that surface's plane; and where it passes within 2
+    margins of another anchor (its own neighbours within ANCHOR_RADIUS aside), as lines to the inner side of
+    one leg do at the other leg. Kept frames come first in each row, as in ``views``."""
+    rows, cols = (views >= 0).nonzero(as_tuple=True)
+    target, centre = points[rows], centres[views[rows, cols]]
+    offset = target - centre
+    length = offset.norm(dim=-1)
+    direction = offset / length.clamp_min(1e-9)[:, None]
+    normals = anchor_normals(points)[rows]
+    oblique = ((normals * direction).sum(-1).abs() < 1.5 * margin / max(gap, 1e-9)) & (normals.norm(dim=-1) > 0)
+    passing = torch.zeros_like(oblique)
+    for part in torch.arange(len(rows)).split(2048):  # lines x anchors, in blocks of lines
+        towards = points[None] - centre[part, None]  # (L, N, 3)
+        along = (towards * direction[part, None]).sum(-1)
+        across = (towards - along[..., None] * direction[part, None]).norm(dim=-1)
+        own = torch.cdist(target[part], points) <= ANCHOR_RADIUS
+        on_line = (along > 0) & (along < (length[part] - gap)[:, None]) & ~own
+        passing[part] = ((across < 2 * margin) & on_line).any(1)
+    kept = views.clone()
+    kept[rows[oblique | passing], cols[oblique | passing]] = -1
+    order = torch.argsort((kept < 0).to(torch.int8), dim=1, stable=True)
+    return kept.gather(1, order)
+
+
 def resolve_start(cfg: TrainConfig, unanchored: bool) -> TrainConfig:
     """Fix the field's start where the options leave it open (``field.init_radius`` None). The signed
     baseline starts as a sphere shell, as NeuS does. So does an unsigned field whose capture has sparse
@@ -443,6 +485,9 @@ def train(
         data.find_near_points(torch.from_numpy(points), cfg.loss.point_prior_radius)
     run_dir.mkdir(parents=True, exist_ok=True)
     cfg_file.write_text(cfg.model_dump_json(indent=2))
+    if surface_views is not None:
+        surface_views = clear_sight_views(surface_points, surface_views, data.c2w[:, :3, 3],
+                                          cfg.loss.point_sight_margin, cfg.loss.point_sight_gap)
     trainer = Trainer(data, run_dir, cfg, device, surface_points, surface_views)
     trainer.resume()
     result = trainer.fit(progress, budget_s=minutes * 60 if minutes is not None else None)
