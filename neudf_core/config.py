@@ -138,6 +138,9 @@ class LossConfig(_Block):
     point_sight_gap: float = Field(
         0.03, ge=0.0, description="how far short of the anchor a line of sight stops (the points' scatter)")
     point_sight_samples: int = Field(32, ge=1, description="points drawn on each line of sight")
+    point_sight_clear: bool = Field(
+        True, description="leave out the lines of sight that would pass real cloth within the margin (False: "
+        "every frame that saw an anchor)")
 
 
 class OptimConfig(_Block):

@@ -485,7 +485,7 @@ def train(
         data.find_near_points(torch.from_numpy(points), cfg.loss.point_prior_radius)
     run_dir.mkdir(parents=True, exist_ok=True)
     cfg_file.write_text(cfg.model_dump_json(indent=2))
-    if surface_views is not None:
+    if surface_views is not None and cfg.loss.point_sight_clear:
         surface_views = clear_sight_views(surface_points, surface_views, data.c2w[:, :3, 3],
                                           cfg.loss.point_sight_margin, cfg.loss.point_sight_gap)
     trainer = Trainer(data, run_dir, cfg, device, surface_points, surface_views)

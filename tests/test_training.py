@@ -408,8 +408,8 @@ def test_point_surface_term_pulls_the_field_to_zero_at_sparse_points(sheet_scene
 
 def test_line_of_sight_term_clears_surface_off_the_lines_to_seen_points(sheet_scene, tmp_path):
     """Each anchor with the images that saw it (DATA/object_point_views.npy, here every camera): after the
-    same short training, the field has less surface on the lines from those cameras to the anchors with
-    the line-of-sight term than without it. The views are read row for row with the anchors, and a file
+    same short training, the field has less surface on the lines from those cameras to the anchors (those
+    the term keeps) with the line-of-sight term than without it. The views are read row for row with the anchors, and a file
     that does not match the points is refused with its name."""
     import shutil
 
@@ -417,7 +417,7 @@ def test_line_of_sight_term_clears_surface_off_the_lines_to_seen_points(sheet_sc
 
     from neudf_core.losses import surface_in_sight
     from neudf_core.sampler import sight_lines
-    from neudf_core.trainer import load_model
+    from neudf_core.trainer import clear_sight_views, load_model
 
     data_dir = tmp_path / "data"
     shutil.copytree(sheet_scene, data_dir)
@@ -429,8 +429,10 @@ def test_line_of_sight_term_clears_surface_off_the_lines_to_seen_points(sheet_sc
     base = {"data": {"white_background": True}, "optim": {"rays": 64},
             "sampler": {"n_coarse": 16, "n_importance": 16}}
     c2w = load_dataset(data_dir).c2w
-    lines, valid = sight_lines(torch.from_numpy(anchors).repeat_interleave(8, 0),
-                               c2w[torch.from_numpy(views.reshape(-1)).long(), :3, 3], gap=0.03, n=64)
+    # measured on the lines the term trains on: a frame that sees the sheet too obliquely is left out
+    kept = clear_sight_views(torch.from_numpy(anchors), torch.from_numpy(views).long(), c2w[:, :3, 3], 0.01, 0.03)
+    rows, cols = (kept >= 0).nonzero(as_tuple=True)
+    lines, valid = sight_lines(torch.from_numpy(anchors)[rows], c2w[kept[rows, cols], :3, 3], gap=0.03, n=64)
     in_sight = {}
     for weight in (0.0, 10.0):
         run = tmp_path / f"run_{weight}"
@@ -444,6 +446,10 @@ def test_line_of_sight_term_clears_surface_off_the_lines_to_seen_points(sheet_sc
             psi = load_model(run).udf(lines.reshape(-1, 3)).reshape(lines.shape[:2])
         in_sight[weight] = float(surface_in_sight(psi, valid, 0.01))
     assert in_sight[10.0] < 0.5 * in_sight[0.0], in_sight
+
+    unfiltered = train(data_dir, tmp_path / "run_every_view", preset="quick", iters=2, overrides={**base, "loss": {
+        "point_surface_weight": 1.0, "point_sight_weight": 1.0, "point_sight_clear": False}})
+    assert unfiltered["sight_points"] == unfiltered["surface_points"], unfiltered
 
     np.save(data_dir / "object_point_views.npy", views[:-1].astype(np.int32))
     with pytest.raises(DatasetError, match="object_point_views.npy"):
