@@ -409,8 +409,8 @@ def test_point_surface_term_pulls_the_field_to_zero_at_sparse_points(sheet_scene
 def test_line_of_sight_term_clears_surface_off_the_lines_to_seen_points(sheet_scene, tmp_path):
     """Each anchor with the images that saw it (DATA/object_point_views.npy, here every camera): after the
     same short training, the field has less surface on the lines from those cameras to the anchors (those
-    the term keeps) with the line-of-sight term than without it. The views are read row for row with the anchors, and a file
-    that does not match the points is refused with its name."""
+    the term keeps) with the line-of-sight term than without it. The views are read row for row with the
+    anchors, and a file that does not match the points is refused with its name."""
     import shutil
 
     import trimesh
