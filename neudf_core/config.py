@@ -85,6 +85,10 @@ class RendererConfig(_Block):
     receding_opacity: bool = Field(
         True, description="NeUDF: sections where Psi rises absorb too (the paper); false halves the silhouette halo")
     cos_anneal_iters: int = 10_000
+    signed_until: float = Field(
+        0.0, ge=0.0, lt=1.0, description="not in the paper (0 = off; NeUDF with field.output abs): the share "
+        "of training in which h, the field before |.|, is rendered as a signed distance with NeuS's weight and "
+        "its learned s, from a sphere; NeUDF's weight on Psi = |h| takes over after it and opens the surface")
 
     @model_validator(mode="after")
     def _receding_needs_gradient_sections(self) -> "RendererConfig":
@@ -182,6 +186,13 @@ class TrainConfig(_Block):
     optim: OptimConfig = OptimConfig()
     data: DataConfig = DataConfig()
     log: LogConfig = LogConfig()
+
+    @model_validator(mode="after")
+    def _signed_start_needs_abs(self) -> "TrainConfig":
+        if self.renderer.signed_until > 0 and self.renderer.weight == "neudf" and self.field.output != "abs":
+            raise ValueError("renderer.signed_until needs field.output abs: only |h| keeps the sign that the signed "
+                             "start renders")
+        return self
 
 
 # Options that are gone, with the value the code now always uses: a run's config.json written before

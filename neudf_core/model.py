@@ -22,6 +22,7 @@ class RenderState:
     perturb: bool = False
     with_grad: bool = False  # keep the graph through gradients (the eikonal term needs it)
     sharpness_floor: float = 0.0  # lower bound on r at this step (see trainer.sharpness_floor); 0 = none
+    signed: bool = False  # render h, the field before |.|, as a signed distance with NeuS's weight
 
 
 class NeUDFModel(nn.Module):
@@ -107,17 +108,22 @@ class NeUDFModel(nn.Module):
         psi, raw, grad = psi.reshape(n_rays, n_samples), raw.reshape(n_rays, n_samples), grad.reshape(n_rays, n_samples, 3)
         if not state.with_grad:
             grad = grad.detach()
+        value, mode, signed = psi, cfg_r.weight, self.signed
+        if state.signed and not self.signed:
+            # Psi = |h|: h and its gradient, sign(h) grad Psi, make the signed field NeuS renders.
+            value, mode, signed = raw, "neus_sdf", True
+            grad = torch.where(raw[..., None] < 0, -grad, grad)
 
         sharp = self.sharpness()
         if state.sharpness_floor > 0:
             sharp = sharp.clamp_min(state.sharpness_floor)
         if cfg_r.section == "samples":
             # The paper's literal form: the two ends of a section are consecutive samples.
-            prev, nxt = psi, torch.cat([psi[:, 1:], psi[:, -1:]], -1)
+            prev, nxt = value, torch.cat([value[:, 1:], value[:, -1:]], -1)
         else:
             cos = (rays_d[:, None] * grad).sum(-1)
-            prev, nxt = section_ends(psi, cos, dists, state.cos_anneal, signed=self.signed)
-        alpha = alpha_for_mode(cfg_r.weight, prev, nxt, sharp, cfg_r.varsigma, cfg_r.receding_opacity)
+            prev, nxt = section_ends(value, cos, dists, state.cos_anneal, signed=signed)
+        alpha = alpha_for_mode(mode, prev, nxt, sharp, cfg_r.varsigma, cfg_r.receding_opacity)
 
         inside = (points.norm(dim=-1) < 1.0).float()
         if self.cfg.data.floor_y is not None:

@@ -70,13 +70,18 @@ def point_surface_scale(step: int, until: float, total: int) -> float:
     return max(0.0, 1.0 - step / max(until * total, 1.0))
 
 
+def signed_phase(step: int, cfg_renderer: RendererConfig, total: int) -> bool:
+    """Whether NeUDF's field is still rendered as a signed distance at ``step`` (``renderer.signed_until``)."""
+    return cfg_renderer.weight == "neudf" and step < cfg_renderer.signed_until * total
+
+
 def sharpness_floor(step: int, cfg_renderer: RendererConfig, total: int) -> float:
     """The floor on NeUDF's r at ``step``: geometric from sharpness_init to sharpness_floor_end; 0 when off.
 
-    The NeuS baselines keep their learned s: their logistic weight is symmetric about the surface, so a
-    small s blurs it without moving it."""
+    The NeuS baselines, and NeUDF's signed start, keep their learned s: their logistic weight is symmetric
+    about the surface, so a small s blurs it without moving it."""
     start, end = cfg_renderer.sharpness_init, cfg_renderer.sharpness_floor_end
-    if end <= 0 or cfg_renderer.weight != "neudf":
+    if end <= 0 or cfg_renderer.weight != "neudf" or signed_phase(step, cfg_renderer, total):
         return 0.0
     progress = min(1.0, step / max(total, 1))
     return float(start * (end / start) ** progress)
@@ -183,6 +188,7 @@ class Trainer:
             perturb=training,
             with_grad=training,
             sharpness_floor=sharpness_floor(self.step, cfg.renderer, self.total),
+            signed=signed_phase(self.step, cfg.renderer, self.total),
         )
 
     def train_step(self) -> dict[str, float]:
@@ -212,7 +218,9 @@ class Trainer:
             loss = loss + fade * cfg.loss.point_surface_weight * losses.udf_at_points(self._udf_at_sparse_points())
         if self.surface_views is not None and fade > 0:
             loss = loss + fade * cfg.loss.point_sight_weight * self._surface_in_sight()
-        zero_region_on = self.step >= cfg.loss.zero_region_from * self.total
+        # A signed field's inside is negative by rights: the term waits for the unsigned part of training.
+        zero_region_on = (self.step >= cfg.loss.zero_region_from * self.total
+                          and not signed_phase(self.step, cfg.renderer, self.total))
         if cfg.loss.zero_region_weight > 0 and not self.model.signed and zero_region_on:
             loss = loss + cfg.loss.zero_region_weight * losses.zero_region(
                 out["raw"], out["inside"], cfg.loss.zero_region_margin)
@@ -402,14 +410,15 @@ def clear_sight_views(points: torch.Tensor, views: torch.Tensor, centres: torch.
 
 def resolve_start(cfg: TrainConfig, unanchored: bool) -> TrainConfig:
     """Fix the field's start where the options leave it open (``field.init_radius`` None). The signed
-    baseline starts as a sphere shell, as NeuS does. So does an unsigned field whose capture has sparse
+    baseline, and NeUDF with a signed start (``renderer.signed_until``), start as a sphere shell, as NeuS
+    does. So does an unsigned field whose capture has sparse
     points but none that anchor the surface (``unanchored``), with the zero-region term held back so that the
     shell first shrinks onto the object. Otherwise an unsigned field starts as the distance to a point and
     grows where its anchors (or, on clean renders, its colours) are, which keeps lids off openings that a
     shell would cover."""
     if cfg.field.init_radius is not None:
         return cfg
-    signed = cfg.renderer.weight == "neus_sdf"
+    signed = cfg.renderer.weight == "neus_sdf" or cfg.renderer.signed_until > 0
     shell = signed or unanchored
     update = {"field": cfg.field.model_copy(update={"init_radius": SPHERE_START_RADIUS if shell else 0.0})}
     if shell and not signed:

@@ -13,8 +13,9 @@ from neudf_core.cli import register
 from neudf_core.config import RETIRED, load_config, load_saved_config
 from neudf_core.dataset import DatasetError, load_dataset
 from neudf_core.model import RenderState
+from neudf_core.model import NeUDFModel
 from neudf_core.trainer import (RunError, learning_rate, load_model, point_surface_scale,
-                               sharpness_floor, surface_anchors, train)
+                               sharpness_floor, signed_phase, surface_anchors, train)
 
 
 @pytest.fixture(scope="module")
@@ -259,6 +260,50 @@ def test_training_renders_with_r_at_or_above_its_floor(sheet_scene, tmp_path):
         # a row averages the r its 5 steps rendered with; the floor only rises, so its first step bounds it
         assert row["sharpness"] >= sharpness_floor(row["iter"] - 5, cfg.renderer, 20) * (1 - 1e-5), row
     assert _metrics(tmp_path / "run")[-1]["sharpness"] > 500.0  # r starts at 20; 20 Adam steps cannot reach 500
+
+
+def test_a_signed_start_renders_h_exactly_as_the_neus_sdf_baseline_renders_its_field():
+    """In its signed share of training NeUDF renders h (the field before |.|) with NeuS's weight and the
+    signed gradient, as the NeuS-SDF baseline renders the same network; after it, NeUDF's weight on |h|."""
+    torch.manual_seed(0)
+    cfg = load_config("quick", {"data": {"white_background": True}, "field": {"init_radius": 0.5},
+                                "renderer": {"signed_until": 0.5}})
+    unsigned = NeUDFModel(cfg)
+    baseline = NeUDFModel(cfg.model_copy(update={"renderer": cfg.renderer.model_copy(update={"weight": "neus_sdf"})}))
+    baseline.load_state_dict(unsigned.state_dict())
+    rays_o = torch.tensor([[0.0, 0.0, -2.0], [0.3, -0.2, -2.0], [0.0, 0.9, -2.0]])
+    rays_d = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0], [-0.1, 0.1, 1.0], [0.0, -0.3, 1.0]]), dim=-1)
+    state = RenderState(cos_anneal=0.5)
+    signed = unsigned.render(rays_o, rays_d, RenderState(cos_anneal=0.5, signed=True))
+    reference = baseline.render(rays_o, rays_d, state)
+    torch.testing.assert_close(signed["weights"], reference["weights"])
+    torch.testing.assert_close(signed["color"], reference["color"])
+    assert (signed["raw"] < 0).any()  # the rays enter the sphere the field starts as
+    opened = unsigned.render(rays_o, rays_d, state)
+    assert (opened["weights"] - reference["weights"]).abs().max() > 1e-2
+
+
+def test_a_signed_start_has_its_share_of_training_then_hands_over_to_neudf(sheet_scene, tmp_path):
+    cfg = load_config("quick", {"renderer": {"signed_until": 0.4}}).renderer
+    assert [signed_phase(step, cfg, 100) for step in (0, 39, 40, 99)] == [True, True, False, False]
+    assert sharpness_floor(39, cfg, 100) == 0.0  # the signed share learns its s, as the baseline does
+    assert sharpness_floor(40, cfg, 100) == sharpness_floor(40, cfg.model_copy(update={"signed_until": 0.0}), 100)
+    assert not signed_phase(0, cfg.model_copy(update={"weight": "neus_sdf"}), 100)  # the baseline is signed anyway
+    with pytest.raises(ValueError, match="output abs"):
+        load_config("paper", {"renderer": {"signed_until": 0.4}})  # Softplus keeps no sign of h
+    overrides = {"data": {"white_background": True}, "log": {"log_every": 1}, "optim": {"rays": 64},
+                 "renderer": {"signed_until": 0.5, "sharpness_floor_end": 2000.0}}
+    result = train(sheet_scene, tmp_path / "run", preset="quick", iters=8, overrides=overrides)
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert result["start"] == "sphere" and saved["field"]["init_radius"] == 0.5
+    rows = _metrics(tmp_path / "run")
+    # row i holds step i - 1: steps 0-3 signed (learned s from 20, no zero-region term), then NeUDF's floor
+    zero_region = [r["loss"] - r["color_loss"] - 0.1 * r["eikonal"] for r in rows]
+    assert max(abs(z) for z in zero_region[:4]) < 1e-5, zero_region
+    assert all(r["sharpness"] < 25.0 for r in rows[:4]), rows
+    assert all(r["sharpness"] >= sharpness_floor(r["iter"] - 1, load_config("quick", overrides).renderer, 8) * (1 - 1e-5)
+               for r in rows[4:]), rows
+    assert rows[-1]["sharpness"] > 100.0
 
 
 _DENORMALS = """
