@@ -116,7 +116,8 @@ class LossConfig(_Block):
     zero_region_margin: float = Field(0.03, description="depth of h (before the output activation) where it acts")
     zero_region_from: float = Field(
         0.0, ge=0.0, lt=1.0, description="the share of training before the zero-region term acts: a field "
-        "started as a sphere (field.init_radius) first shrinks onto the object as a closed surface")
+        "started as a sphere (field.init_radius) first shrinks onto the object as a closed surface; when above 0, "
+        "the term also waits for 100 iterations")
     point_prior_weight: float = Field(
         0.0, description="not in the paper (0 = off): penalise the object's opacity on rays that pass no sparse "
         "point of the object (DATA/object_points.npy), so the surroundings are not drawn inside the sphere")

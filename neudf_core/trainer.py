@@ -40,6 +40,9 @@ ANCHOR_NEIGHBOURS, ANCHOR_RADIUS = 5, 0.05
 # the zero-region term held back for this share of training: grown from the centre with nothing to pull it
 # out, a smooth object's surface lost every ray to the surroundings model.
 SPHERE_START_RADIUS, SPHERE_START_ZERO_REGION_FROM = 0.5, 0.3
+# A held-back zero-region term also waits this many iterations: shrinking takes steps, not a share of them, and
+# a run of a few dozen iterations (a budget of seconds) would otherwise lift the whole shell off zero.
+ZERO_REGION_MIN_WAIT = 100
 # What may change when a run is resumed with another --iters: the schedule, not the model.
 _SCHEDULE_FIELDS = {"optim": True, "log": True, "renderer": {"cos_anneal_iters"}}
 
@@ -68,6 +71,14 @@ def cos_anneal_ratio(step: int, anneal_iters: int) -> float:
 def point_surface_scale(step: int, until: float, total: int) -> float:
     """The point-surface term's share of its weight at ``step``: 1 at the start, 0 from ``until`` of training."""
     return max(0.0, 1.0 - step / max(until * total, 1.0))
+
+
+def zero_region_started(step: int, share: float, total: int) -> bool:
+    """Whether the zero-region term acts at ``step``: from ``share`` of training, and when held back at all, not
+    before ZERO_REGION_MIN_WAIT iterations."""
+    if share <= 0:
+        return True
+    return step >= max(share * total, ZERO_REGION_MIN_WAIT)
 
 
 def signed_phase(step: int, cfg_renderer: RendererConfig, total: int) -> bool:
@@ -219,7 +230,7 @@ class Trainer:
         if self.surface_views is not None and fade > 0:
             loss = loss + fade * cfg.loss.point_sight_weight * self._surface_in_sight()
         # A signed field's inside is negative by rights: the term waits for the unsigned part of training.
-        zero_region_on = (self.step >= cfg.loss.zero_region_from * self.total
+        zero_region_on = (zero_region_started(self.step, cfg.loss.zero_region_from, self.total)
                           and not signed_phase(self.step, cfg.renderer, self.total))
         if cfg.loss.zero_region_weight > 0 and not self.model.signed and zero_region_on:
             loss = loss + cfg.loss.zero_region_weight * losses.zero_region(

@@ -8,14 +8,13 @@ import torch
 import typer
 from typer.testing import CliRunner
 
-from neudf_core import synthetic
+from neudf_core import synthetic, trainer
 from neudf_core.cli import register
 from neudf_core.config import RETIRED, load_config, load_saved_config
 from neudf_core.dataset import DatasetError, load_dataset
-from neudf_core.model import RenderState
-from neudf_core.model import NeUDFModel
-from neudf_core.trainer import (RunError, learning_rate, load_model, point_surface_scale,
-                               sharpness_floor, signed_phase, surface_anchors, train)
+from neudf_core.model import NeUDFModel, RenderState
+from neudf_core.trainer import (RunError, learning_rate, load_model, point_surface_scale, sharpness_floor,
+                               signed_phase, surface_anchors, train, zero_region_started)
 
 
 @pytest.fixture(scope="module")
@@ -229,8 +228,14 @@ def test_zero_region_term_is_on_in_quick_only_and_trains(sheet_scene, tmp_path):
     assert result["iters"] == 3 and np.isfinite(result["loss"])
 
 
-def test_zero_region_term_waits_for_its_share_of_training(sheet_scene, tmp_path):
+def test_zero_region_term_waits_for_its_share_of_training(sheet_scene, tmp_path, monkeypatch):
     # started as a sphere (h < 0 inside), the field is penalised for that inside only from the share on
+    assert zero_region_started(0, 0.0, 20)
+    assert [zero_region_started(step, 0.3, 1000) for step in (299, 300)] == [False, True]
+    # ... and, held back at all, not before 100 iterations: a run of seconds keeps its shell
+    assert [zero_region_started(step, 0.3, 200) for step in (60, 99, 100)] == [False, False, True]
+    assert not zero_region_started(22, 0.3, 23)
+    monkeypatch.setattr(trainer, "ZERO_REGION_MIN_WAIT", 0)  # a run of 8 iterations shows the share alone
     overrides = {"data": {"white_background": True}, "log": {"log_every": 1}, "optim": {"rays": 64},
                  "field": {"init_radius": 0.5}, "loss": {"zero_region_from": 0.5}}
     train(sheet_scene, tmp_path / "run", preset="quick", iters=8, overrides=overrides)
