@@ -422,9 +422,8 @@ def clear_sight_views(points: torch.Tensor, views: torch.Tensor, centres: torch.
 def resolve_start(cfg: TrainConfig, unanchored: bool) -> TrainConfig:
     """Fix the field's start where the options leave it open (``field.init_radius`` None). The signed
     baseline, and NeUDF with a signed start (``renderer.signed_until``), start as a sphere shell, as NeuS
-    does. So does an unsigned field whose capture has sparse
-    points but none that anchor the surface (``unanchored``), with the zero-region term held back so that the
-    shell first shrinks onto the object. Otherwise an unsigned field starts as the distance to a point and
+    does. So does an unsigned field whose capture has sparse points but none that anchor the surface
+    (``unanchored``), with the zero-region term held back so that the shell first shrinks onto the object. Otherwise an unsigned field starts as the distance to a point and
     grows where its anchors (or, on clean renders, its colours) are, which keeps lids off openings that a
     shell would cover."""
     if cfg.field.init_radius is not None:

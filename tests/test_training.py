@@ -305,6 +305,7 @@ def test_a_signed_start_has_its_share_of_training_then_hands_over_to_neudf(sheet
     # row i holds step i - 1: steps 0-3 signed (learned s from 20, no zero-region term), then NeUDF's floor
     zero_region = [r["loss"] - r["color_loss"] - 0.1 * r["eikonal"] for r in rows]
     assert max(abs(z) for z in zero_region[:4]) < 1e-5, zero_region
+    assert min(zero_region[4:]) > 1e-4, zero_region  # the sphere's inside, h < 0, is penalised from then on
     assert all(r["sharpness"] < 25.0 for r in rows[:4]), rows
     assert all(r["sharpness"] >= sharpness_floor(r["iter"] - 1, load_config("quick", overrides).renderer, 8) * (1 - 1e-5)
                for r in rows[4:]), rows
