@@ -81,6 +81,9 @@ class RendererConfig(_Block):
     sharpness_init: float = Field(0.05, description="r for NeUDF (paper: 0.05), s for the NeuS baselines")
     sharpness_floor_end: float = Field(
         0.0, description="not in the paper (0 = off, NeUDF only): floor on r, geometric from sharpness_init to this")
+    sharpness_floor_mode: Literal["clamp", "lift"] = Field(
+        "clamp", description="clamp: r is the floor while the learned r is below it, and the images cannot move "
+        "it; lift: the learned r is raised to the floor after each step, so the images can make it sharper")
     section: SectionMode = "midpoint_gradient"
     receding_opacity: bool = Field(
         True, description="NeUDF: sections where Psi rises absorb too (the paper); false halves the silhouette halo")

@@ -253,3 +253,7 @@ class Sharpness(nn.Module):
     def forward(self) -> Tensor:
         return torch.exp(10.0 * self.v)
 
+    @torch.no_grad()
+    def lift_to(self, floor: float) -> None:
+        """Raise the value to ``floor`` where it is below; above it the learned value stands."""
+        self.v.clamp_(min=math.log(floor) / 10.0)

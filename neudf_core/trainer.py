@@ -198,7 +198,8 @@ class Trainer:
             cos_anneal=cos_anneal_ratio(self.step, cfg.renderer.cos_anneal_iters) if training else 1.0,
             perturb=training,
             with_grad=training,
-            sharpness_floor=sharpness_floor(self.step, cfg.renderer, self.total),
+            sharpness_floor=sharpness_floor(self.step, cfg.renderer, self.total)
+            if cfg.renderer.sharpness_floor_mode == "clamp" else 0.0,
             signed=signed_phase(self.step, cfg.renderer, self.total),
         )
 
@@ -239,9 +240,16 @@ class Trainer:
         loss.backward()
         self.optimizer.step()
         self.step += 1
+        self._lift_sharpness()
         return {"loss": float(loss.detach()), "color_loss": float(color_loss.detach()), "eikonal": float(eik.detach()),
                 "psnr": losses.psnr(out["color"], batch["color"]), "sharpness": float(out["sharpness"]),
                 "weight_sum": float(out["weight_sum"].detach().mean()), "lr": lr}
+
+    def _lift_sharpness(self) -> None:
+        """In ``lift`` mode the floor bounds the learned r itself, so the gradient reaches r above it."""
+        floor = sharpness_floor(self.step, self.cfg.renderer, self.total)
+        if self.cfg.renderer.sharpness_floor_mode == "lift" and floor > 0:
+            self.model.sharpness.lift_to(floor)
 
     def _udf_at_sparse_points(self) -> torch.Tensor:
         pick = torch.randint(len(self.surface_points), (self.cfg.loss.point_surface_batch,), generator=self.generator)

@@ -267,6 +267,26 @@ def test_training_renders_with_r_at_or_above_its_floor(sheet_scene, tmp_path):
     assert _metrics(tmp_path / "run")[-1]["sharpness"] > 500.0  # r starts at 20; 20 Adam steps cannot reach 500
 
 
+@pytest.mark.parametrize("mode", ["clamp", "lift"])
+def test_only_a_lifted_r_learns_while_the_floor_bounds_it(sheet_scene, tmp_path, mode):
+    """Clamped, r is the floor and its gradient is 0 while the learned value lies below; lifted, the learned
+    value itself is kept at or above the floor and the images' gradient reaches it."""
+    cfg = load_config("quick", {"data": {"white_background": True}, "optim": {"iters": 20},
+                                "renderer": {"sharpness_init": 20.0, "sharpness_floor_end": 2000.0,
+                                             "sharpness_floor_mode": mode}})
+    fit = trainer.Trainer(load_dataset(sheet_scene, max_size=24), tmp_path / "run", cfg, "cpu")
+    for _ in range(5):
+        fit.train_step()
+    grad = fit.model.sharpness.v.grad
+    learned = float(fit.model.sharpness())
+    if mode == "lift":
+        assert learned >= sharpness_floor(5, cfg.renderer, 20) * (1 - 1e-5)
+        assert grad is not None and float(grad.abs()) > 0
+    else:
+        assert learned < sharpness_floor(4, cfg.renderer, 20)  # 5 warm-up steps of Adam leave it near 20
+        assert grad is None or float(grad.abs()) == 0
+
+
 def test_a_signed_start_renders_h_exactly_as_the_neus_sdf_baseline_renders_its_field():
     """In its signed share of training NeUDF renders h (the field before |.|) with NeuS's weight and the
     signed gradient, as the NeuS-SDF baseline renders the same network; after it, NeUDF's weight on |h|."""
