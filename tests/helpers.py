@@ -105,6 +105,14 @@ class ServeProcess:
                                             start_new_session=True)
         self.log = log
 
+    def log_tails(self, chars: int = 3000) -> str:
+        """The ends of the server's and its worker's logs, for a failing test's message."""
+        tails = []
+        for path in (self.log, self.data_dir / "worker.log"):
+            text = path.read_text(errors="replace")[-chars:] if path.is_file() else "(none)"
+            tails.append(f"--- {path.name}:\n{text}")
+        return "\n".join(tails)
+
     def wait_ready(self, timeout_s: float = 120) -> None:
         """Until the API answers and, with a worker, health says ok (it has reported in)."""
         deadline = time.monotonic() + timeout_s

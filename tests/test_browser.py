@@ -79,7 +79,7 @@ def test_page_uploads_shows_progress_and_loads_the_glb(embedded_server: Any, tin
     ARTIFACTS.mkdir(exist_ok=True)
     if state != "succeeded":
         page.screenshot(path=str(ARTIFACTS / f"page_job_{state}.png"), full_page=True)
-    assert state == "succeeded", page.inner_text("#neudf-status")
+    assert state == "succeeded", page.inner_text("#neudf-status") + "\n" + embedded_server.log_tails()
     # The state and the bar are separate elements: the bar may reach 100% one refresh after the state.
     settle = time.monotonic() + 15
     while values and values[-1] < 1.0 and time.monotonic() < settle:

@@ -96,6 +96,7 @@ def test_most_frames_register_and_unregistered_ones_are_dropped(captured):
     assert capture["pose_jumps"] == 0
     n = capture["frames_total"]
     assert capture["pairs_matched"] < n * (n - 1) / 2  # a video is matched sequentially, not all pairs
+    assert capture["mapper"] == "global"  # and mapped at once
 
 
 @pytest.mark.slow

@@ -47,6 +47,7 @@ def test_object_region_leaves_a_textured_floor_out(tmp_path):
     assert off_deg < 0.5 and len(entries) >= 40, (off_deg, len(entries))
     floor_y = json.loads((data / "region.json").read_text())["floor_y"]
     record = json.loads((data / "capture.json").read_text())
+    assert record["mapper"] == "incremental"  # 48 frames, matched all against all
     scene = record.get("scene", {})
     assert floor_y is not None, (record.get("frames_registered"), scene.get("floor_search"), scene.get("up"))
 
