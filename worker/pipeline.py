@@ -52,7 +52,7 @@ EXPORT_FILES = ("mesh.glb", "mesh.obj", "mesh.mtl", "mesh.png", "mesh.usdz", "me
 
 # A job with no budget of its own ends within DEFAULT_JOB_MINUTES of its start on a 2-core CPU: training takes
 # what the capture left, less what meshing and export need, between MIN_ and DEFAULT_TRAIN_MINUTES (the
-# poses stage of a 10 s video took 5.8-6.2 minutes on the last machine measured, SIFT and matching two thirds
+# poses stage of a 10 s video took 4.8-6.2 minutes on the last machine measured, SIFT and matching two thirds
 # of it; machines vary by up to 2x).
 DEFAULT_JOB_MINUTES = 19.0
 DEFAULT_TRAIN_MINUTES = 9.0
@@ -284,7 +284,7 @@ class Stage:
 STAGES: tuple[Stage, ...] = (
     Stage("frames", 0.04, _frames, lambda c: [c.data_dir / "image", c.data_dir / "frames.json"],
           keys=("frames", "max_size"), expect_s=lambda c: 0.15 * c.frames),
-    # SIFT, matching and global mapping of 720x1280 frames: 5.8-6.2 min for 200 on a 2-core CPU left to itself.
+    # SIFT, matching and global mapping of 720x1280 frames: 4.8-6.2 min for 200 on a 2-core CPU left to itself.
     Stage("poses", 0.16, _poses, lambda c: [c.data_dir / "colmap" / "poses.json"],
           expect_s=lambda c: 1.8 * c.frames),
     Stage("scene", 0.02, _scene, lambda c: [c.data_dir / "cameras_sphere.npz"]),

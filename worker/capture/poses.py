@@ -11,10 +11,10 @@ Steps, each reported through ``progress``:
    walk-around, all pairs among ~``loop_keyframes`` frames spread over the video plus the first frames
    against the last. (COLMAP's own loop detection needs a vocabulary tree file we do not ship.) Far pairs
    survive only with ``far_min_inliers`` inliers and a general (non-planar) geometry.
-3. Mapping, the largest model kept. A video is mapped globally (pycolmap's GLOMAP: focal length from the
-   pairs' fundamental matrices, rotation averaging, global positioning, bundle adjustment and
-   retriangulation, on at most ``global_max_tracks`` tracks): a 200-frame walk-around took 70 s where
-   COLMAP's incremental mapper took 368 s, the cameras as close to the truth (see ``PoseOptions.mapper``).
+3. Mapping, the largest model kept. A video is mapped globally (pycolmap's GLOMAP: rotation averaging,
+   global positioning, bundle adjustment and retriangulation, on at most ``global_max_tracks`` tracks): a
+   200-frame walk-around's mapping took 75 s where COLMAP's incremental mapper took 368 s, the cameras as
+   close to the truth (``PoseOptions.mapper``).
    Fewer frames, matched all against all, go to the incremental mapper, which reports each registered
    frame.
    On repeated texture (floor tiles) a far pair can still be wrong and flip a stretch of the video to a
@@ -284,18 +284,17 @@ def _map_global(db: Path, image_dir: Path, sparse: Path, n_images: int, opts: Po
     options = pycolmap.GlobalPipelineOptions()
     options.num_threads = opts.num_threads
     options.random_seed = opts.seed
+    # Three rounds of bundle adjustment (the default) also bring a video's focal length, which starts as
+    # 1.2 times the long side, to the truth (1536 -> 938 px on a test video; one round stopped at 1464).
+    # Estimating it first from the pairs' fundamental matrices (pycolmap.calibrate_view_graph) made a
+    # 63-frame test orbit jump where it maps right without.
     options.mapper.keep_max_num_tracks = opts.global_max_tracks
-    options.mapper.global_positioning.use_gpu = False  # CPU solvers either way (no CUDA in pycolmap's wheels): asking adds a warning
+    # CPU solvers either way (pycolmap's wheels carry no CUDA); asking for the GPU only adds a warning.
+    options.mapper.global_positioning.use_gpu = False
     options.mapper.bundle_adjustment.ceres.use_gpu = False
     # One call without a per-frame callback or a cancellation token: progress moves and a cancel takes
     # effect before and after it (about a minute for 200 frames on 2 cores).
     progress(0.0, f"mapping {n_images} frames at once")
-    # A video carries no focal length: the mapper's guess (1.2 times the long side) is far enough off that
-    # relative rotations come out wrong and rotation averaging joins stretches of the video at wrong angles.
-    # Estimating the focal length from the pairs' fundamental matrices first avoids that.
-    calibration = pycolmap.ViewGraphCalibrationOptions()
-    calibration.random_seed = opts.seed
-    pycolmap.calibrate_view_graph(db, calibration)
     models = pycolmap.global_mapping(db, image_dir, sparse, options=options)
     registered = max((m.num_reg_images() for m in models.values()), default=0)
     progress(1.0, f"registered {registered}/{n_images} frames", registered=registered)
