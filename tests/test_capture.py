@@ -116,6 +116,40 @@ def test_cameras_agree_with_the_truth_up_to_a_similarity(captured):
     assert abs(captured["K"][:, 0, 0].mean() / true_focal - 1) < 0.08
 
 
+
+@pytest.mark.slow
+def test_a_global_mapping_that_jumps_is_mapped_again_globally_from_neighbours_in_time(captured, orbit, tmp_path,
+                                                                                       monkeypatch):
+    import shutil
+
+    import pycolmap
+
+    data = tmp_path / "data"  # the capture's registered frames, posed again
+    shutil.copytree(captured["data"] / "image", data / "image")
+    shutil.copy(captured["data"] / "frames.json", data / "frames.json")
+    real_jumps, calls = poses_stage.pose_jumps, []
+
+    def first_mapping_jumps(model, factor=10.0):  # as a wrong far pair makes a stretch of a real video jump
+        calls.append(model.num_reg_images())
+        return [("000.png", "001.png")] if len(calls) == 1 else real_jumps(model, factor)
+
+    monkeypatch.setattr(poses_stage, "pose_jumps", first_mapping_jumps)
+    figures = poses_stage.estimate_poses(data, options=poses_stage.PoseOptions(num_threads=1))
+    assert len(calls) == 2  # the first mapping and the remap, which did not jump: no incremental third
+    assert figures["mapper"] == "global" and figures["sequential_only"] and figures["pose_jumps"] == 0
+    assert figures["far_pairs_dropped"] > 0
+    record = json.loads((data / "colmap" / "poses.json").read_text())
+    assert record["model_dir"].startswith("sparse_sequential_global")
+    model = pycolmap.Reconstruction(str(data / "colmap" / record["model_dir"]))
+    posed = {im.name: np.linalg.inv(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]]))
+             for im in model.images.values() if im.has_pose}
+    assert len(posed) >= 0.9 * len(captured["entries"])
+    keep = [i for i, e in enumerate(captured["entries"]) if e["file"] in posed]
+    est = np.stack([posed[captured["entries"][i]["file"]] for i in keep])
+    errors = pose_errors(est, captured["truth"][keep])
+    assert np.median(errors["rotation_deg"]) < 0.5
+    assert np.sqrt(np.mean(errors["centre_err"] ** 2)) < 0.02 * ORBIT_RADIUS
+
 def test_alignment_undoes_a_similarity_and_is_not_tilted_by_centre_noise():
     truth = np.stack([c.c2w for c in synthetic.orbit_cameras(40, ORBIT_RADIUS, elevation_deg=(0.0, 0.0))])
     from scipy.spatial.transform import Rotation

@@ -20,14 +20,15 @@ Steps, each reported through ``progress``:
    On repeated texture (floor tiles) a far pair can still be wrong and flip a stretch of the video to a
    mirrored pose with a small reprojection error (seen on the real beer.mp4). A video's consecutive
    frames must move smoothly, so a jump between them (:func:`jump_indices`) makes the stage drop every far
-   pair and map again, incrementally, from neighbours in time alone; jumps that remain are reported as a
-   warning.
+   pair and map again from neighbours in time alone: globally first where the first mapping was global
+   (a poncho video whose global mapping jumped mapped right so in 94 s, the incremental remap 260 s), then
+   incrementally if the poses still jump; jumps that remain are reported as a warning.
 4. Undistortion to a pinhole camera, because NeuS's ``world_mat`` is a pinhole projection. When the
    estimated distortion moves no pixel by more than ``undistort_threshold_px`` the frames are used as they
    are (no resampling blur) and the camera is rewritten as PINHOLE; otherwise pycolmap's
    ``undistort_images`` resamples them.
 
-Writes ``DATA/colmap/`` (database.db, sparse/<k>/, undistorted/{images,sparse}/, frames_all.json and
+Writes ``DATA/colmap/`` (database.db, sparse/<k>/ and after a jump sparse_sequential_<mapper>/<k>/, undistorted/{images,sparse}/, frames_all.json and
 poses.json, the marker written last) and merges frames_total, frames_registered, reprojection_error_px,
 points and the seconds of each step into ``DATA/capture.json``. Raises StageError when too few frames
 register.
@@ -334,6 +335,22 @@ def _map_incremental(db: Path, image_dir: Path, sparse: Path, n_images: int, opt
     return models
 
 
+def _remap_sequential(db: Path, image_dir: Path, work: Path, n_images: int, first: str, opts: PoseOptions,
+                      progress: ProgressFn) -> tuple[pycolmap.Reconstruction, Path, int, str, list[tuple[str, str]]]:
+    """Map again once the far pairs are dropped: the first mapper again, then, if the poses still jump, the
+    incremental one, which rejects a wrong pair frame by frame where a global solve must average it in.
+    Returns the model, its folder, the number of models, the mapper that made it and its jumps."""
+    mappers = ["global", "incremental"] if first == "global" else ["incremental"]
+    for k, mapper in enumerate(mappers):
+        span = sub_progress(progress, k / len(mappers), (k + 1) / len(mappers))
+        model, model_dir, n_models = _map(db, image_dir, work / f"sparse_sequential_{mapper}", n_images,
+                                          opts.model_copy(update={"mapper": mapper}), span)
+        jumps = pose_jumps(model, opts.max_jump_factor)
+        if not jumps:
+            break
+    return model, model_dir, n_models, mapper, jumps
+
+
 def _max_distortion_px(camera: pycolmap.Camera) -> float:
     """Largest shift a pixel gets from the camera's distortion, over a grid covering the image."""
     u, v = np.meshgrid(np.linspace(0.5, camera.width - 0.5, 17), np.linspace(0.5, camera.height - 0.5, 17))
@@ -412,16 +429,15 @@ def _estimate_poses(data_dir: Path, opts: PoseOptions, progress: ProgressFn) -> 
     # A remap, if pose jumps call for one, takes the last part of the range, so progress never goes back.
     model, model_dir, n_models = _map(db, image_dir, work / "sparse", len(names), opts,
                                       sub_progress(progress, 0.55, 0.85))
+    mapper = _mapper(opts, len(names))
     jumps = pose_jumps(model, opts.max_jump_factor) if video else []
     sequential_only = False
     if jumps:  # a far pair misled the mapper: map again from neighbours in time alone
         progress(0.85, f"poses jump between {len(jumps)} pairs of frames: mapping again without far pairs")
         far_dropped += _drop_far_pairs(db, names, pairs, opts.overlap, None)
-        # The frame-by-frame mapper for this: it rejects a wrong pair where a global solve must average it in.
-        remap = opts.model_copy(update={"mapper": "incremental"})
-        model, model_dir, n_models = _map(db, image_dir, work / "sparse_sequential", len(names), remap,
-                                          sub_progress(progress, 0.85, 0.95))
-        jumps, sequential_only = pose_jumps(model, opts.max_jump_factor), True
+        model, model_dir, n_models, mapper, jumps = _remap_sequential(db, image_dir, work, len(names), mapper,
+                                                                      opts, sub_progress(progress, 0.85, 0.95))
+        sequential_only = True
     seconds["mapping"] = time.perf_counter() - t
 
     total, registered = len(names), model.num_reg_images()
@@ -452,7 +468,7 @@ def _estimate_poses(data_dir: Path, opts: PoseOptions, progress: ProgressFn) -> 
         "reprojection_error_px": round(float(model.compute_mean_reprojection_error()), 4),
         "points": model.num_points3D(),
         "mean_track_length": round(float(model.compute_mean_track_length()), 3),
-        "mapper": "incremental" if sequential_only else _mapper(opts, total),
+        "mapper": mapper,
         "models": n_models,
         "pairs_matched": len(pairs),
         "far_pairs_dropped": far_dropped,
