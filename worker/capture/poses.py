@@ -20,9 +20,9 @@ Steps, each reported through ``progress``:
    On repeated texture (floor tiles) a far pair can still be wrong and flip a stretch of the video to a
    mirrored pose with a small reprojection error (seen on the real beer.mp4). A video's consecutive
    frames must move smoothly, so a jump between them (:func:`jump_indices`) makes the stage drop every far
-   pair and map again from neighbours in time alone: globally first where the first mapping was global
-   (a poncho video whose global mapping jumped mapped right so in 94 s, the incremental remap 260 s), then
-   incrementally if the poses still jump; jumps that remain are reported as a warning.
+   pair and map again from neighbours in time alone: globally first where the first mapping was global (a
+   poncho video whose global mapping jumped mapped right so in 83-94 s; the incremental remap took 183 s),
+   then incrementally if the poses still jump; jumps that remain are reported as a warning.
 4. Undistortion to a pinhole camera, because NeuS's ``world_mat`` is a pinhole projection. When the
    estimated distortion moves no pixel by more than ``undistort_threshold_px`` the frames are used as they
    are (no resampling blur) and the camera is rewritten as PINHOLE; otherwise pycolmap's
