@@ -343,8 +343,13 @@ def _remap_sequential(db: Path, image_dir: Path, work: Path, n_images: int, firs
     mappers = ["global", "incremental"] if first == "global" else ["incremental"]
     for k, mapper in enumerate(mappers):
         span = sub_progress(progress, k / len(mappers), (k + 1) / len(mappers))
-        model, model_dir, n_models = _map(db, image_dir, work / f"sparse_sequential_{mapper}", n_images,
-                                          opts.model_copy(update={"mapper": mapper}), span)
+        try:
+            model, model_dir, n_models = _map(db, image_dir, work / f"sparse_sequential_{mapper}", n_images,
+                                              opts.model_copy(update={"mapper": mapper}), span)
+        except StageError:  # no model at all: the next mapper may still make one
+            if mapper == mappers[-1]:
+                raise
+            continue
         jumps = pose_jumps(model, opts.max_jump_factor)
         if not jumps:
             break
