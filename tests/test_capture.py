@@ -116,7 +116,6 @@ def test_cameras_agree_with_the_truth_up_to_a_similarity(captured):
     assert abs(captured["K"][:, 0, 0].mean() / true_focal - 1) < 0.08
 
 
-
 @pytest.mark.slow
 def test_a_global_mapping_that_jumps_is_mapped_again_globally_from_neighbours_in_time(captured, orbit, tmp_path,
                                                                                        monkeypatch):
@@ -149,6 +148,7 @@ def test_a_global_mapping_that_jumps_is_mapped_again_globally_from_neighbours_in
     errors = pose_errors(est, captured["truth"][keep])
     assert np.median(errors["rotation_deg"]) < 0.5
     assert np.sqrt(np.mean(errors["centre_err"] ** 2)) < 0.02 * ORBIT_RADIUS
+
 
 def test_alignment_undoes_a_similarity_and_is_not_tilted_by_centre_noise():
     truth = np.stack([c.c2w for c in synthetic.orbit_cameras(40, ORBIT_RADIUS, elevation_deg=(0.0, 0.0))])

@@ -28,10 +28,10 @@ Steps, each reported through ``progress``:
    are (no resampling blur) and the camera is rewritten as PINHOLE; otherwise pycolmap's
    ``undistort_images`` resamples them.
 
-Writes ``DATA/colmap/`` (database.db, sparse/<k>/ and after a jump sparse_sequential_<mapper>/<k>/, undistorted/{images,sparse}/, frames_all.json and
-poses.json, the marker written last) and merges frames_total, frames_registered, reprojection_error_px,
-points and the seconds of each step into ``DATA/capture.json``. Raises StageError when too few frames
-register.
+Writes ``DATA/colmap/`` (database.db, sparse/<k>/, after a jump sparse_sequential_<mapper>/<k>/,
+undistorted/{images,sparse}/, frames_all.json and poses.json, the marker written last) and merges
+frames_total, frames_registered, reprojection_error_px, points and the seconds of each step into
+``DATA/capture.json``. Raises StageError when too few frames register.
 """
 
 from __future__ import annotations
