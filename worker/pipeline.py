@@ -51,9 +51,9 @@ __all__ = ["JobOptions", "STAGES", "STAGE_NAMES", "run_pipeline", "artifact_file
 EXPORT_FILES = ("mesh.glb", "mesh.obj", "mesh.mtl", "mesh.png", "mesh.usdz", "mesh.ply")
 
 # A job with no budget of its own ends within DEFAULT_JOB_MINUTES of its start on a 2-core CPU: training takes
-# what the capture left, less what meshing and export need (1.0-1.1 minutes measured), between MIN_ and
-# DEFAULT_TRAIN_MINUTES. The poses stage of a 10 s video took 4.8-6.3 minutes on the last machines measured,
-# SIFT and matching two thirds of it: such a job trains 11-12 minutes and ends after about 18.5. Machines vary
+# what the capture left, less what meshing and export need (0.9-1.2 minutes measured), between MIN_ and
+# DEFAULT_TRAIN_MINUTES. The poses stage of a 10 s video took 4.8-6.7 minutes on the last machines measured,
+# SIFT and matching most of it: such a job trained 10.5-12 minutes and ended after 18.6-18.9. Machines vary
 # by up to 2x; a slow capture shortens training, not the user's wait, down to MIN_TRAIN_MINUTES.
 DEFAULT_JOB_MINUTES = 19.0
 DEFAULT_TRAIN_MINUTES = 12.0
