@@ -188,7 +188,7 @@ def main() -> None:
         "frames_total": record["frames_total"], "frames_registered": record["frames_registered"],
         "reprojection_error_px": record["reprojection_error_px"], "points": record["points"],
         "camera": record["camera"], "undistorted": record.get("undistorted"),
-        "matching": {k: record.get(k) for k in ("pairs_matched", "far_pairs_dropped", "sequential_only",
+        "matching": {k: record.get(k) for k in ("pairs_matched", "far_pairs_matched", "far_pairs_dropped", "sequential_only",
                                                  "pose_jumps", "models")},
         "warnings": record.get("warnings", []),
         "scene": record.get("scene"),

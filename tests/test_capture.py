@@ -96,6 +96,7 @@ def test_most_frames_register_and_unregistered_ones_are_dropped(captured):
     assert capture["pose_jumps"] == 0
     n = capture["frames_total"]
     assert capture["pairs_matched"] < n * (n - 1) / 2  # a video is matched sequentially, not all pairs
+    assert capture["far_pairs_matched"] == 0 and capture["sequential_only"]  # a smooth orbit needs no far pair
     assert capture["mapper"] == "global"  # and mapped at once
 
 
@@ -117,8 +118,9 @@ def test_cameras_agree_with_the_truth_up_to_a_similarity(captured):
 
 
 @pytest.mark.slow
-def test_a_global_mapping_that_jumps_is_mapped_again_globally_from_neighbours_in_time(captured, orbit, tmp_path,
-                                                                                       monkeypatch):
+@pytest.mark.parametrize("jumping", [1, 2])
+def test_a_sequence_that_jumps_calls_in_the_far_pairs_and_drops_them_if_they_jump(captured, orbit, tmp_path,
+                                                                                  monkeypatch, jumping):
     import shutil
 
     import pycolmap
@@ -128,17 +130,22 @@ def test_a_global_mapping_that_jumps_is_mapped_again_globally_from_neighbours_in
     shutil.copy(captured["data"] / "frames.json", data / "frames.json")
     real_jumps, calls = poses_stage.pose_jumps, []
 
-    def first_mapping_jumps(model, factor=10.0):  # as a wrong far pair makes a stretch of a real video jump
+    def first_mappings_jump(model, factor=10.0):  # as a blurry stretch, then a wrong far pair, would make them
         calls.append(model.num_reg_images())
-        return [("000.png", "001.png")] if len(calls) == 1 else real_jumps(model, factor)
+        return [("000.png", "001.png")] if len(calls) <= jumping else real_jumps(model, factor)
 
-    monkeypatch.setattr(poses_stage, "pose_jumps", first_mapping_jumps)
+    monkeypatch.setattr(poses_stage, "pose_jumps", first_mappings_jump)
     figures = poses_stage.estimate_poses(data, options=poses_stage.PoseOptions(num_threads=1))
-    assert len(calls) == 2  # the first mapping and the remap, which did not jump: no incremental third
-    assert figures["mapper"] == "global" and figures["sequential_only"] and figures["pose_jumps"] == 0
-    assert figures["far_pairs_dropped"] > 0
+    assert len(calls) == jumping + 1  # neighbours alone, with the far pairs, and without them incrementally
+    assert figures["far_pairs_matched"] > 0 and figures["pose_jumps"] == 0
     record = json.loads((data / "colmap" / "poses.json").read_text())
-    assert record["model_dir"].startswith("sparse_sequential_global")
+    if jumping == 1:  # the far pairs held: they stay in the model
+        assert figures["mapper"] == "global" and not figures["sequential_only"]
+        assert record["model_dir"].startswith("sparse_far")
+    else:
+        assert figures["mapper"] == "incremental" and figures["sequential_only"]
+        assert figures["far_pairs_dropped"] > 0
+        assert record["model_dir"].startswith("sparse_sequential_incremental")
     model = pycolmap.Reconstruction(str(data / "colmap" / record["model_dir"]))
     posed = {im.name: np.linalg.inv(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]]))
              for im in model.images.values() if im.has_pose}

@@ -6,29 +6,33 @@ Steps, each reported through ``progress``:
    model (OPENCV by default), the SIFT image size capped. Extraction runs in batches so progress moves
    and a cancel takes effect between batches.
 2. Matching on an explicit list of image pairs. A small set (fewer than ``exhaustive_below`` frames) is
-   matched exhaustively. A video is matched sequentially: each frame with its ``overlap`` successors, with
-   successors at power-of-two distances (as COLMAP's quadratic overlap), and, to close the loop of a
-   walk-around, all pairs among ~``loop_keyframes`` frames spread over the video plus the first frames
-   against the last. (COLMAP's own loop detection needs a vocabulary tree file we do not ship.) Far pairs
-   survive only with ``far_min_inliers`` inliers and a general (non-planar) geometry.
+   matched exhaustively. A video is matched with each frame's ``overlap`` successors in time first; the far
+   pairs (successors at power-of-two distances, as COLMAP's quadratic overlap, all pairs among
+   ~``loop_keyframes`` frames spread over the video, and the first frames against the last, to close a
+   walk-around's loop; COLMAP's own loop detection needs a vocabulary tree file we do not ship) are matched
+   only where the neighbours in time cannot hold the video, and survive only with ``far_min_inliers``
+   inliers and a general (non-planar) geometry.
 3. Mapping, the largest model kept. A video is mapped globally (pycolmap's GLOMAP: rotation averaging,
    global positioning, bundle adjustment and retriangulation, on at most ``global_max_tracks`` tracks): a
    200-frame walk-around's mapping took 75 s where COLMAP's incremental mapper took 368 s, the cameras as
    close to the truth (``PoseOptions.mapper``).
    Fewer frames, matched all against all, go to the incremental mapper, which reports each registered
    frame.
-   On repeated texture (floor tiles) a far pair can still be wrong and flip a stretch of the video to a
-   mirrored pose with a small reprojection error (seen on the real beer.mp4). A video's consecutive
-   frames must move smoothly, so a jump between them (:func:`jump_indices`) makes the stage drop every far
-   pair and map again from neighbours in time alone: globally first where the first mapping was global (a
-   poncho video whose global mapping jumped mapped right so in 83-94 s; the incremental remap took 183 s),
-   then incrementally if the poses still jump; jumps that remain are reported as a warning.
+   A video's consecutive frames must move smoothly. When the mapping from neighbours in time makes no
+   model, registers too few frames or jumps between consecutive frames (:func:`jump_indices`), the far
+   pairs are matched and the video mapped again with them. On repeated texture (floor tiles, a room's
+   walls) a far pair can be wrong and flip a stretch of the video to a mirrored pose with a small
+   reprojection error (seen on the real beer.mp4 and on four of five garment videos of bench/e2e.py,
+   mapped with their far pairs first); where the poses then jump, every far pair is dropped and the video
+   mapped incrementally from neighbours in time, rejecting a wrong pair frame by frame where a global solve
+   must average it in. Jumps that remain are reported as a warning.
 4. Undistortion to a pinhole camera, because NeuS's ``world_mat`` is a pinhole projection. When the
    estimated distortion moves no pixel by more than ``undistort_threshold_px`` the frames are used as they
    are (no resampling blur) and the camera is rewritten as PINHOLE; otherwise pycolmap's
    ``undistort_images`` resamples them.
 
-Writes ``DATA/colmap/`` (database.db, sparse/<k>/, after a jump sparse_sequential_<mapper>/<k>/,
+Writes ``DATA/colmap/`` (database.db, sparse/<k>/, with far pairs sparse_far/<k>/ and after a jump there
+sparse_sequential_incremental/<k>/,
 undistorted/{images,sparse}/, frames_all.json and poses.json, the marker written last) and merges
 frames_total, frames_registered, reprojection_error_px, points and the seconds of each step into
 ``DATA/capture.json``. Raises StageError when too few frames register.
@@ -80,7 +84,8 @@ class PoseOptions(BaseModel):
         "and a general (non-planar) two-view geometry: repeated texture (floor tiles) fakes such pairs.")
     max_jump_factor: float = Field(
         10.0, gt=1, description="A step between consecutive frames this many times the median step (position) "
-        "or 45 degrees and this many median rotations is a pose jump; jumps trigger sequential-only mapping.")
+        "or 45 degrees and this many median rotations is a pose jump; jumps call in the far pairs, and where those "
+        "jump, drop them for the incremental mapper.")
     mapper: Literal["auto", "global", "incremental"] = Field(
         "auto", description="global: rotation averaging, then all positions and bundle adjustment at once (GLOMAP "
         "in pycolmap), several times faster on a video; incremental: COLMAP's frame-by-frame mapper, which "
@@ -181,10 +186,8 @@ def _extract(db: Path, image_dir: Path, names: list[str], opts: PoseOptions, pro
     progress(1.0, f"SIFT features {len(names)}/{len(names)}")
 
 
-def _match(db: Path, work: Path, names: list[str], opts: PoseOptions,
-           progress: ProgressFn) -> list[tuple[int, int]]:
-    pairs = image_pairs(len(names), exhaustive_below=opts.exhaustive_below, overlap=opts.overlap,
-                        loop_keyframes=opts.loop_keyframes, doubling=opts.doubling)
+def _match(db: Path, work: Path, names: list[str], pairs: list[tuple[int, int]], opts: PoseOptions,
+           progress: ProgressFn) -> None:
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = opts.num_threads
     pair_file = work / "pairs.txt"
@@ -197,7 +200,6 @@ def _match(db: Path, work: Path, names: list[str], opts: PoseOptions,
                                    device=pycolmap.Device.cpu)
     pair_file.unlink(missing_ok=True)
     progress(1.0, f"matched {len(pairs)} pairs")
-    return pairs
 
 
 # Two-view configurations of a general 3-D scene (the database stores them as plain ints).
@@ -335,25 +337,40 @@ def _map_incremental(db: Path, image_dir: Path, sparse: Path, n_images: int, opt
     return models
 
 
-def _remap_sequential(db: Path, image_dir: Path, work: Path, n_images: int, first: str, opts: PoseOptions,
-                      progress: ProgressFn) -> tuple[pycolmap.Reconstruction, Path, int, str, list[tuple[str, str]]]:
-    """Map again once the far pairs are dropped: the first mapper again, then, if the poses still jump, the
-    incremental one, which rejects a wrong pair frame by frame where a global solve must average it in.
-    Returns the model, its folder, the number of models, the mapper that made it and its jumps."""
-    mappers = ["global", "incremental"] if first == "global" else ["incremental"]
-    for k, mapper in enumerate(mappers):
-        span = sub_progress(progress, k / len(mappers), (k + 1) / len(mappers))
-        try:
-            model, model_dir, n_models = _map(db, image_dir, work / f"sparse_sequential_{mapper}", n_images,
-                                              opts.model_copy(update={"mapper": mapper}), span)
-        except StageError:  # no model at all: the next mapper may still make one
-            if mapper == mappers[-1]:
-                raise
-            continue
+FAR_MODELS = "sparse_far"  # the models mapped with the far pairs too
+
+
+def _sequence_broken(model: pycolmap.Reconstruction | None, jumps: list[tuple[str, str]], n_images: int,
+                     opts: PoseOptions) -> str | None:
+    """Why a mapping from neighbours in time alone needs the far pairs, or None when it holds."""
+    if model is None:
+        return "no model from neighbours in time"
+    if jumps:
+        return f"poses jump between {len(jumps)} pairs of frames"
+    if model.num_reg_images() < opts.good_registered_fraction * n_images:
+        return f"only {model.num_reg_images()} of {n_images} frames registered from neighbours in time"
+    return None
+
+
+def _map_with_far_pairs(db: Path, image_dir: Path, work: Path, names: list[str], far: list[tuple[int, int]],
+                        mapper: str, opts: PoseOptions, progress: ProgressFn
+                        ) -> tuple[pycolmap.Reconstruction, Path, int, str, list[tuple[str, str]], int]:
+    """Match the far pairs too and map again; if a far pair then makes the poses jump, drop them all and map
+    incrementally from neighbours in time, which rejects a wrong pair frame by frame where a global solve
+    must average it in. Returns the model, its folder, the number of models, the mapper that made it, its
+    jumps and how many far pairs were dropped."""
+    _match(db, work, names, far, opts, sub_progress(progress, 0.0, 0.3))
+    dropped = _drop_far_pairs(db, names, far, opts.overlap, opts.far_min_inliers)
+    model, model_dir, n_models = _map(db, image_dir, work / FAR_MODELS, len(names), opts,
+                                      sub_progress(progress, 0.3, 0.7))
+    jumps = pose_jumps(model, opts.max_jump_factor)
+    if jumps and mapper != "incremental":
+        dropped += _drop_far_pairs(db, names, far, opts.overlap, None)
+        mapper = "incremental"
+        model, model_dir, n_models = _map(db, image_dir, work / "sparse_sequential_incremental", len(names),
+                                          opts.model_copy(update={"mapper": mapper}), sub_progress(progress, 0.7, 1.0))
         jumps = pose_jumps(model, opts.max_jump_factor)
-        if not jumps:
-            break
-    return model, model_dir, n_models, mapper, jumps
+    return model, model_dir, n_models, mapper, jumps, dropped
 
 
 def _max_distortion_px(camera: pycolmap.Camera) -> float:
@@ -425,24 +442,31 @@ def _estimate_poses(data_dir: Path, opts: PoseOptions, progress: ProgressFn) -> 
     seconds["features"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    pairs = _match(db, work, names, opts, sub_progress(progress, 0.3, 0.55))
-    video = len(names) >= opts.exhaustive_below  # matched as a sequence, with far pairs for loops
-    far_dropped = _drop_far_pairs(db, names, pairs, opts.overlap, opts.far_min_inliers) if video else 0
+    pairs = image_pairs(len(names), exhaustive_below=opts.exhaustive_below, overlap=opts.overlap,
+                        loop_keyframes=opts.loop_keyframes, doubling=opts.doubling)
+    video = len(names) >= opts.exhaustive_below  # matched as a sequence; far pairs only where it breaks
+    near = [p for p in pairs if not video or p[1] - p[0] <= opts.overlap]
+    far = [p for p in pairs if video and p[1] - p[0] > opts.overlap]
+    _match(db, work, names, near, opts, sub_progress(progress, 0.3, 0.45))
     seconds["matching"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    # A remap, if pose jumps call for one, takes the last part of the range, so progress never goes back.
-    model, model_dir, n_models = _map(db, image_dir, work / "sparse", len(names), opts,
-                                      sub_progress(progress, 0.55, 0.85))
     mapper = _mapper(opts, len(names))
-    jumps = pose_jumps(model, opts.max_jump_factor) if video else []
-    sequential_only = False
-    if jumps:  # a far pair misled the mapper: map again from neighbours in time alone
-        progress(0.85, f"poses jump between {len(jumps)} pairs of frames: mapping again without far pairs")
-        far_dropped += _drop_far_pairs(db, names, pairs, opts.overlap, None)
-        model, model_dir, n_models, mapper, jumps = _remap_sequential(db, image_dir, work, len(names), mapper,
-                                                                      opts, sub_progress(progress, 0.85, 0.95))
-        sequential_only = True
+    try:
+        model, model_dir, n_models = _map(db, image_dir, work / "sparse", len(names), opts,
+                                          sub_progress(progress, 0.45, 0.7))
+    except StageError:
+        if not far:
+            raise
+        model = None
+    jumps = pose_jumps(model, opts.max_jump_factor) if video and model is not None else []
+    far_matched, far_dropped = 0, 0
+    broken = _sequence_broken(model, jumps, len(names), opts) if far else None
+    if broken:  # far pairs bridge a stretch the neighbours could not hold
+        progress(0.7, f"{broken}: matching far pairs too")
+        far_matched = len(far)
+        model, model_dir, n_models, mapper, jumps, far_dropped = _map_with_far_pairs(
+            db, image_dir, work, names, far, mapper, opts, sub_progress(progress, 0.7, 0.95))
     seconds["mapping"] = time.perf_counter() - t
 
     total, registered = len(names), model.num_reg_images()
@@ -475,9 +499,10 @@ def _estimate_poses(data_dir: Path, opts: PoseOptions, progress: ProgressFn) -> 
         "mean_track_length": round(float(model.compute_mean_track_length()), 3),
         "mapper": mapper,
         "models": n_models,
-        "pairs_matched": len(pairs),
+        "pairs_matched": len(near) + far_matched,
+        "far_pairs_matched": far_matched,
         "far_pairs_dropped": far_dropped,
-        "sequential_only": sequential_only,
+        "sequential_only": video and model_dir.parent.name != FAR_MODELS,
         "pose_jumps": len(jumps),
         "camera": {"model": camera.model_name, "width": camera.width, "height": camera.height,
                    "params": [round(float(p), 6) for p in camera.params]},
