@@ -22,10 +22,10 @@ Steps, each reported through ``progress``:
    model, registers too few frames or jumps between consecutive frames (:func:`jump_indices`), the far
    pairs are matched and the video mapped again with them. On repeated texture (floor tiles, a room's
    walls) a far pair can be wrong and flip a stretch of the video to a mirrored pose with a small
-   reprojection error (seen on the real beer.mp4 and on four of five garment videos of bench/e2e.py,
-   mapped with their far pairs first); where the poses then jump, every far pair is dropped and the video
-   mapped incrementally from neighbours in time, rejecting a wrong pair frame by frame where a global solve
-   must average it in. Jumps that remain are reported as a warning.
+   reprojection error (seen on the real beer.mp4 and on the poncho and polo videos of bench/e2e.py, when
+   they were mapped with their far pairs first); where the poses then jump, every far pair is dropped and
+   the video mapped incrementally from neighbours in time, rejecting a wrong pair frame by frame where a
+   global solve must average it in. Jumps that remain are reported as a warning.
 4. Undistortion to a pinhole camera, because NeuS's ``world_mat`` is a pinhole projection. When the
    estimated distortion moves no pixel by more than ``undistort_threshold_px`` the frames are used as they
    are (no resampling blur) and the camera is rewritten as PINHOLE; otherwise pycolmap's
