@@ -355,20 +355,18 @@ def _sequence_broken(model: pycolmap.Reconstruction | None, jumps: list[tuple[st
 def _map_with_far_pairs(db: Path, image_dir: Path, work: Path, names: list[str], far: list[tuple[int, int]],
                         mapper: str, opts: PoseOptions, progress: ProgressFn
                         ) -> tuple[pycolmap.Reconstruction, Path, int, str, list[tuple[str, str]], int]:
-    """Match the far pairs too and map again; if a far pair then makes the poses jump, drop them all and map
+    """Map again with the far pairs (matched); if one of them then makes the poses jump, drop them all and map
     incrementally from neighbours in time, which rejects a wrong pair frame by frame where a global solve
     must average it in. Returns the model, its folder, the number of models, the mapper that made it, its
     jumps and how many far pairs were dropped."""
-    _match(db, work, names, far, opts, sub_progress(progress, 0.0, 0.3))
-    dropped = _drop_far_pairs(db, names, far, opts.overlap, opts.far_min_inliers)
     model, model_dir, n_models = _map(db, image_dir, work / FAR_MODELS, len(names), opts,
-                                      sub_progress(progress, 0.3, 0.7))
-    jumps = pose_jumps(model, opts.max_jump_factor)
+                                      sub_progress(progress, 0.0, 0.5))
+    jumps, dropped = pose_jumps(model, opts.max_jump_factor), 0
     if jumps and mapper != "incremental":
-        dropped += _drop_far_pairs(db, names, far, opts.overlap, None)
+        dropped = _drop_far_pairs(db, names, far, opts.overlap, None)
         mapper = "incremental"
         model, model_dir, n_models = _map(db, image_dir, work / "sparse_sequential_incremental", len(names),
-                                          opts.model_copy(update={"mapper": mapper}), sub_progress(progress, 0.7, 1.0))
+                                          opts.model_copy(update={"mapper": mapper}), sub_progress(progress, 0.5, 1.0))
         jumps = pose_jumps(model, opts.max_jump_factor)
     return model, model_dir, n_models, mapper, jumps, dropped
 
@@ -462,12 +460,18 @@ def _estimate_poses(data_dir: Path, opts: PoseOptions, progress: ProgressFn) -> 
     jumps = pose_jumps(model, opts.max_jump_factor) if video and model is not None else []
     far_matched, far_dropped = 0, 0
     broken = _sequence_broken(model, jumps, len(names), opts) if far else None
+    far_seconds = 0.0
     if broken:  # far pairs bridge a stretch the neighbours could not hold
         progress(0.7, f"{broken}: matching far pairs too")
-        far_matched = len(far)
-        model, model_dir, n_models, mapper, jumps, far_dropped = _map_with_far_pairs(
-            db, image_dir, work, names, far, mapper, opts, sub_progress(progress, 0.7, 0.95))
-    seconds["mapping"] = time.perf_counter() - t
+        far_start = time.perf_counter()
+        _match(db, work, names, far, opts, sub_progress(progress, 0.7, 0.78))
+        far_matched, far_dropped = len(far), _drop_far_pairs(db, names, far, opts.overlap, opts.far_min_inliers)
+        far_seconds = time.perf_counter() - far_start
+        model, model_dir, n_models, mapper, jumps, dropped = _map_with_far_pairs(
+            db, image_dir, work, names, far, mapper, opts, sub_progress(progress, 0.78, 0.95))
+        far_dropped += dropped
+    seconds["matching"] += far_seconds
+    seconds["mapping"] = time.perf_counter() - t - far_seconds
 
     total, registered = len(names), model.num_reg_images()
     needed = max(opts.min_registered, math.ceil(opts.min_registered_fraction * total))
