@@ -157,6 +157,34 @@ def test_a_sequence_that_jumps_calls_in_the_far_pairs_and_drops_them_if_they_jum
     assert np.sqrt(np.mean(errors["centre_err"] ** 2)) < 0.02 * ORBIT_RADIUS
 
 
+@pytest.mark.slow
+def test_a_model_from_neighbours_in_time_is_kept_when_the_far_pairs_make_none(captured, tmp_path, monkeypatch):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(captured["data"] / "image", data / "image")
+    shutil.copy(captured["data"] / "frames.json", data / "frames.json")
+    real_map, real_jumps, calls = poses_stage._map, poses_stage.pose_jumps, []
+
+    def far_mapping_fails(db, image_dir, out, *args, **kwargs):
+        if out.name == poses_stage.FAR_MODELS:  # as a wrong far pair can leave no model at all
+            raise poses_stage.StageError("poses", "no model", "registration")
+        return real_map(db, image_dir, out, *args, **kwargs)
+
+    def first_mapping_jumps(model, factor=10.0):
+        calls.append(model.num_reg_images())
+        return [("000.png", "001.png")] if len(calls) == 1 else real_jumps(model, factor)
+
+    monkeypatch.setattr(poses_stage, "_map", far_mapping_fails)
+    monkeypatch.setattr(poses_stage, "pose_jumps", first_mapping_jumps)
+    figures = poses_stage.estimate_poses(data, options=poses_stage.PoseOptions(num_threads=1))
+    assert figures["far_pairs_matched"] > 0 and figures["sequential_only"]
+    assert figures["frames_registered"] == calls[0] >= 0.9 * len(captured["entries"])
+    record = json.loads((data / "colmap" / "poses.json").read_text())
+    assert record["model_dir"].startswith("sparse/")
+    assert any("jump" in w for w in figures.get("warnings", []))  # the first mapping's (made-up) jump is reported
+
+
 def test_alignment_undoes_a_similarity_and_is_not_tilted_by_centre_noise():
     truth = np.stack([c.c2w for c in synthetic.orbit_cameras(40, ORBIT_RADIUS, elevation_deg=(0.0, 0.0))])
     from scipy.spatial.transform import Rotation

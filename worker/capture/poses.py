@@ -46,7 +46,7 @@ import shutil
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, NamedTuple
 
 import numpy as np
 import pycolmap
@@ -340,25 +340,35 @@ def _map_incremental(db: Path, image_dir: Path, sparse: Path, n_images: int, opt
 FAR_MODELS = "sparse_far"  # the models mapped with the far pairs too
 
 
-def _sequence_broken(model: pycolmap.Reconstruction | None, jumps: list[tuple[str, str]], n_images: int,
-                     opts: PoseOptions) -> str | None:
+class Mapping(NamedTuple):
+    """A mapping's outcome: the largest model, its folder, how many models, the mapper that made it, its jumps
+    between consecutive frames and how many far pairs were dropped on the way."""
+
+    model: pycolmap.Reconstruction
+    model_dir: Path
+    n_models: int
+    mapper: str
+    jumps: list[tuple[str, str]]
+    far_dropped: int = 0
+
+
+def _sequence_broken(mapping: Mapping | None, n_images: int, opts: PoseOptions) -> str | None:
     """Why a mapping from neighbours in time alone needs the far pairs, or None when it holds."""
-    if model is None:
+    if mapping is None:
         return "no model from neighbours in time"
-    if jumps:
-        return f"poses jump between {len(jumps)} pairs of frames"
-    if model.num_reg_images() < opts.good_registered_fraction * n_images:
-        return f"only {model.num_reg_images()} of {n_images} frames registered from neighbours in time"
+    if mapping.jumps:
+        return f"poses jump between {len(mapping.jumps)} pairs of frames"
+    registered = mapping.model.num_reg_images()
+    if registered < opts.good_registered_fraction * n_images:
+        return f"only {registered} of {n_images} frames registered from neighbours in time"
     return None
 
 
 def _map_with_far_pairs(db: Path, image_dir: Path, work: Path, names: list[str], far: list[tuple[int, int]],
-                        mapper: str, opts: PoseOptions, progress: ProgressFn
-                        ) -> tuple[pycolmap.Reconstruction, Path, int, str, list[tuple[str, str]], int]:
+                        mapper: str, opts: PoseOptions, progress: ProgressFn) -> Mapping:
     """Map again with the far pairs (matched); if one of them then makes the poses jump, drop them all and map
     incrementally from neighbours in time, which rejects a wrong pair frame by frame where a global solve
-    must average it in. Returns the model, its folder, the number of models, the mapper that made it, its
-    jumps and how many far pairs were dropped."""
+    must average it in."""
     model, model_dir, n_models = _map(db, image_dir, work / FAR_MODELS, len(names), opts,
                                       sub_progress(progress, 0.0, 0.5))
     jumps, dropped = pose_jumps(model, opts.max_jump_factor), 0
@@ -368,7 +378,17 @@ def _map_with_far_pairs(db: Path, image_dir: Path, work: Path, names: list[str],
         model, model_dir, n_models = _map(db, image_dir, work / "sparse_sequential_incremental", len(names),
                                           opts.model_copy(update={"mapper": mapper}), sub_progress(progress, 0.5, 1.0))
         jumps = pose_jumps(model, opts.max_jump_factor)
-    return model, model_dir, n_models, mapper, jumps, dropped
+    return Mapping(model, model_dir, n_models, mapper, jumps, dropped)
+
+
+def _better_mapping(first: Mapping | None, second: Mapping | None) -> Mapping | None:
+    """Which to keep of the mapping from neighbours in time (``first``) and the one after the far pairs
+    (``second``; None: no model): the far pairs' unless it registers fewer frames without jumping less, so a
+    partial model from neighbours in time is not lost to a worse one."""
+    if first is None or second is None:
+        return second or first
+    fewer = second.model.num_reg_images() < first.model.num_reg_images()
+    return first if fewer and len(second.jumps) >= len(first.jumps) else second
 
 
 def _max_distortion_px(camera: pycolmap.Camera) -> float:
@@ -453,13 +473,14 @@ def _estimate_poses(data_dir: Path, opts: PoseOptions, progress: ProgressFn) -> 
     try:
         model, model_dir, n_models = _map(db, image_dir, work / "sparse", len(names), opts,
                                           sub_progress(progress, 0.45, 0.7))
+        jumps = pose_jumps(model, opts.max_jump_factor) if video else []
+        mapping: Mapping | None = Mapping(model, model_dir, n_models, mapper, jumps)
     except StageError:
         if not far:
             raise
-        model = None
-    jumps = pose_jumps(model, opts.max_jump_factor) if video and model is not None else []
+        mapping = None
     far_matched, far_dropped = 0, 0
-    broken = _sequence_broken(model, jumps, len(names), opts) if far else None
+    broken = _sequence_broken(mapping, len(names), opts) if far else None
     far_seconds = 0.0
     if broken:  # far pairs bridge a stretch the neighbours could not hold
         progress(0.7, f"{broken}: matching far pairs too")
@@ -467,9 +488,16 @@ def _estimate_poses(data_dir: Path, opts: PoseOptions, progress: ProgressFn) -> 
         _match(db, work, names, far, opts, sub_progress(progress, 0.7, 0.78))
         far_matched, far_dropped = len(far), _drop_far_pairs(db, names, far, opts.overlap, opts.far_min_inliers)
         far_seconds = time.perf_counter() - far_start
-        model, model_dir, n_models, mapper, jumps, dropped = _map_with_far_pairs(
-            db, image_dir, work, names, far, mapper, opts, sub_progress(progress, 0.78, 0.95))
-        far_dropped += dropped
+        try:
+            with_far = _map_with_far_pairs(db, image_dir, work, names, far, mapper, opts,
+                                           sub_progress(progress, 0.78, 0.95))
+        except StageError:
+            if mapping is None:
+                raise
+            with_far = None
+        mapping = _better_mapping(mapping, with_far)
+        far_dropped += mapping.far_dropped
+    model, model_dir, n_models, mapper, jumps, _ = mapping
     seconds["matching"] += far_seconds
     seconds["mapping"] = time.perf_counter() - t - far_seconds
 
